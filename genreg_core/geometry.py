@@ -1,0 +1,130 @@
+"""SE(3) helpers shared by the model, PDSAC, data and the registration API.
+
+Conventions (everywhere in genreg):
+- Points are rows: a cloud is an (N, 3) array, batched clouds are (B, N, 3).
+- Transforms are 4x4 homogeneous matrices acting on column vectors: x' = R x + t.
+  Applied to row-stored points this reads X' = X R^T + t (see `apply_transform`).
+- A transform named `T_ab` maps points expressed in frame b into frame a.
+- Units are whatever the input carries (metres for sensor data, REP-103); angles are radians
+  unless a name ends in `_deg`.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+from scipy.spatial.transform import Rotation
+
+ArrayLike = np.ndarray | torch.Tensor
+
+
+def make_transform(rotation: np.ndarray, translation: np.ndarray) -> np.ndarray:
+    """Build a 4x4 transform from a 3x3 rotation and a 3-vector translation."""
+    T = np.eye(4)
+    T[:3, :3] = rotation
+    T[:3, 3] = np.asarray(translation).reshape(3)
+    return T
+
+
+def invert_transform(T: ArrayLike) -> ArrayLike:
+    """Inverse of a rigid transform (batched over leading dims): [R t]^-1 = [R^T, -R^T t]."""
+    R, t = T[..., :3, :3], T[..., :3, 3:]
+    Rt = R.transpose(-1, -2) if isinstance(T, torch.Tensor) else np.swapaxes(R, -1, -2)
+    inv = torch.zeros_like(T) if isinstance(T, torch.Tensor) else np.zeros_like(T)
+    inv[..., :3, :3] = Rt
+    inv[..., :3, 3:] = -(Rt @ t)
+    inv[..., 3, 3] = 1.0
+    return inv
+
+
+def apply_transform(T: ArrayLike, points: ArrayLike) -> ArrayLike:
+    """x' = R x + t for row-stored points; T (..., 4, 4) batches with points (..., N, 3)."""
+    R, t = T[..., :3, :3], T[..., :3, 3]
+    Rt = R.transpose(-1, -2) if isinstance(T, torch.Tensor) else np.swapaxes(R, -1, -2)
+    return points @ Rt + t[..., None, :]
+
+
+def rotation_angle(R: ArrayLike) -> ArrayLike:
+    """Rotation angle in radians of (batched) 3x3 rotation matrices, numerically safe."""
+    trace = R[..., 0, 0] + R[..., 1, 1] + R[..., 2, 2]
+    if isinstance(R, torch.Tensor):
+        return torch.arccos(torch.clamp((trace - 1.0) / 2.0, -1.0, 1.0))
+    return np.arccos(np.clip((trace - 1.0) / 2.0, -1.0, 1.0))
+
+
+def random_transform(
+    rng: np.random.Generator, max_angle_deg: float = 45.0, max_translation: float = 0.8
+) -> np.ndarray:
+    """The paper's random rigid transform (Sec. 4.1).
+
+    Rotation: angle uniform in [0, max_angle_deg] about a uniformly random unit axis.
+    Translation: uniformly random direction, magnitude uniform in [0, max_translation].
+    """
+    axis = rng.normal(size=3)
+    axis /= np.linalg.norm(axis)
+    angle = np.deg2rad(rng.uniform(0.0, max_angle_deg))
+    direction = rng.normal(size=3)
+    direction /= np.linalg.norm(direction)
+    translation = direction * rng.uniform(0.0, max_translation)
+    return make_transform(Rotation.from_rotvec(axis * angle).as_matrix(), translation)
+
+
+def axis_angle_to_matrix(rotvec: torch.Tensor) -> torch.Tensor:
+    """Differentiable Rodrigues formula: (..., 3) rotation vectors -> (..., 3, 3) matrices."""
+    angle = torch.linalg.norm(rotvec, dim=-1, keepdim=True).clamp_min(1e-8)
+    k = rotvec / angle
+    zero = torch.zeros_like(k[..., 0])
+    K = torch.stack(
+        [zero, -k[..., 2], k[..., 1], k[..., 2], zero, -k[..., 0], -k[..., 1], k[..., 0], zero],
+        dim=-1,
+    ).reshape(*rotvec.shape[:-1], 3, 3)
+    s, c = torch.sin(angle)[..., None], torch.cos(angle)[..., None]
+    eye = torch.eye(3, dtype=rotvec.dtype, device=rotvec.device).expand_as(K)
+    return eye + s * K + (1.0 - c) * (K @ K)
+
+
+def params_to_transform(params: torch.Tensor) -> torch.Tensor:
+    """(..., 6) = (rotation vector, translation) -> (..., 4, 4) rigid transforms (differentiable)."""
+    T = torch.zeros(*params.shape[:-1], 4, 4, dtype=params.dtype, device=params.device)
+    T[..., :3, :3] = axis_angle_to_matrix(params[..., :3])
+    T[..., :3, 3] = params[..., 3:]
+    T[..., 3, 3] = 1.0
+    return T
+
+
+def kabsch(
+    source: torch.Tensor, target: torch.Tensor, weights: torch.Tensor | None = None
+) -> torch.Tensor:
+    """Weighted least-squares rigid transform with target ~ R source + t (proper, det R = +1).
+
+    source, target: (..., K, 3); weights: (..., K) non-negative or None. Returns (..., 4, 4).
+    Batched over leading dims and differentiable (SVD of the 3x3 cross-covariance).
+    """
+    if weights is None:
+        weights = torch.ones(source.shape[:-1], dtype=source.dtype, device=source.device)
+    w = weights / weights.sum(dim=-1, keepdim=True).clamp_min(1e-12)
+    mu_s = (w[..., None] * source).sum(dim=-2)
+    mu_t = (w[..., None] * target).sum(dim=-2)
+    cov = ((source - mu_s[..., None, :]) * w[..., None]).transpose(-1, -2) @ (target - mu_t[..., None, :])
+    U, _, Vh = torch.linalg.svd(cov)
+    d = torch.sign(torch.linalg.det(Vh.transpose(-1, -2) @ U.transpose(-1, -2)))
+    d = torch.where(d == 0, torch.ones_like(d), d)
+    D = torch.diag_embed(torch.stack([torch.ones_like(d), torch.ones_like(d), d], dim=-1))
+    R = Vh.transpose(-1, -2) @ D @ U.transpose(-1, -2)
+    T = torch.zeros(*R.shape[:-2], 4, 4, dtype=source.dtype, device=source.device)
+    T[..., :3, :3] = R
+    T[..., :3, 3] = mu_t - (R @ mu_s[..., None])[..., 0]
+    T[..., 3, 3] = 1.0
+    return T
+
+
+def unit_box_normalization(points: np.ndarray) -> tuple[np.ndarray, float]:
+    """Offset and scale that put a cloud into the unit box [0, 1]^3 (aspect kept).
+
+    Returns (offset, scale) with normalised = (points - offset) / scale. Pass the union of two
+    clouds to normalise them jointly, which keeps their relative pose (rotation unchanged,
+    translation divided by scale).
+    """
+    lo, hi = points.min(axis=0), points.max(axis=0)
+    scale = float(max((hi - lo).max(), 1e-12))
+    return lo, scale
