@@ -128,3 +128,29 @@ def unit_box_normalization(points: np.ndarray) -> tuple[np.ndarray, float]:
     lo, hi = points.min(axis=0), points.max(axis=0)
     scale = float(max((hi - lo).max(), 1e-12))
     return lo, scale
+
+
+def normalize_pair(
+    source: np.ndarray, target: np.ndarray, T_target_source: np.ndarray | None = None
+) -> tuple[np.ndarray, np.ndarray, np.ndarray | None, np.ndarray, float]:
+    """Normalise a pair jointly with one similarity taken from the source's bounding box.
+
+    x_n = (x - offset) / scale for both clouds, so the source fills the unit box [0, 1]^3 as in
+    training. A transform target_from_source becomes R_n = R, t_n = (t + R offset - offset) / scale.
+    Returns (source_n, target_n, T_n or None, offset, scale).
+    """
+    offset, scale = unit_box_normalization(source)
+    src_n = ((source - offset) / scale).astype(np.float32)
+    tgt_n = ((target - offset) / scale).astype(np.float32)
+    T_n = None
+    if T_target_source is not None:
+        T_n = np.array(T_target_source, dtype=np.float64)
+        T_n[:3, 3] = (T_n[:3, 3] + T_n[:3, :3] @ offset - offset) / scale
+    return src_n, tgt_n, T_n, offset, scale
+
+
+def denormalize_transform(T_n: np.ndarray, offset: np.ndarray, scale: float) -> np.ndarray:
+    """Inverse of the translation mapping in `normalize_pair`: t = scale t_n + offset - R offset."""
+    T = np.array(T_n, dtype=np.float64)
+    T[:3, 3] = scale * T[:3, 3] + offset - T[:3, :3] @ offset
+    return T
