@@ -1,0 +1,96 @@
+"""GenRegNet: the generator of GenReg (paper Fig. 2): T-Net, GCNN, two mixer layers, feature
+interaction and decoder. The discriminator lives beside it and is used only in training.
+
+Frames: A (source) and B (target) are (B, N, 3) clouds in their own frames. The network generates
+A_g, point i of A expressed in B's frame, and B_g, point i of B expressed in A's frame.
+
+Generation, column convention: with c_A, c_B the centroids (if `center_inputs`), R_pre the optional
+PCA pre-rotation and T_a the T-Net transform,
+    A_g,i = T_a (R_pre (A_i - c_A)) + d_A,i + c_B,
+where d_A,i is the decoder's output for point i. B_g is symmetric (R_pre^T, T_b, c_A).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+from torch import nn
+
+from genreg_core.config import ModelConfig
+from genreg_core.geometry import apply_transform
+from genreg_core.model.decoder import Decoder
+from genreg_core.model.discriminator import Discriminator
+from genreg_core.model.gcnn import EdgeConv
+from genreg_core.model.layers import centroid
+from genreg_core.model.mixer import MixerLayer
+from genreg_core.model.prealign import pca_prealign
+from genreg_core.model.tnet import TNet
+
+
+@dataclass
+class GenRegOutput:
+    """Generated clouds and the T-Net transforms of one forward pass."""
+
+    source_generated: torch.Tensor  # A_g (B, N, 3), in B's frame
+    target_generated: torch.Tensor  # B_g (B, N, 3), in A's frame
+    tnet_source: torch.Tensor  # (B, 4, 4)
+    tnet_target: torch.Tensor  # (B, 4, 4)
+
+
+class PointMixerEncoder(nn.Module):
+    """GCNN (edge convolution on the kNN graph of the coordinates) then two mixer layers: (B, N, 3)
+    -> (B, N, feature_dim)."""
+
+    def __init__(self, cfg: ModelConfig) -> None:
+        super().__init__()
+        self.gcnn = EdgeConv(3, cfg.gcnn_channels, cfg.k_neighbors, norm=cfg.norm)
+        h1, h2 = cfg.mixer_hidden
+        self.mixer1 = MixerLayer(cfg.num_points, cfg.gcnn_channels, h1, cfg.feature_dim)
+        self.mixer2 = MixerLayer(cfg.num_points, cfg.feature_dim, h2, cfg.feature_dim)
+
+    def forward(self, points: torch.Tensor) -> torch.Tensor:
+        return self.mixer2(self.mixer1(self.gcnn(points)))
+
+
+def feature_interaction(f_a: torch.Tensor, f_b: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """FI module: max-pool each cloud's features to G_A, G_B and append the difference of the other
+    cloud's global feature and one's own to every point: [F_A, G_B - G_A] and [F_B, G_A - G_B]."""
+    g_a, g_b = f_a.amax(dim=1, keepdim=True), f_b.amax(dim=1, keepdim=True)
+    return (
+        torch.cat([f_a, (g_b - g_a).expand_as(f_a)], dim=-1),
+        torch.cat([f_b, (g_a - g_b).expand_as(f_b)], dim=-1),
+    )
+
+
+class GenRegNet(nn.Module):
+    """The generator. `forward(a, b)` -> GenRegOutput. Inputs must hold exactly cfg.num_points points."""
+
+    def __init__(self, cfg: ModelConfig | None = None) -> None:
+        super().__init__()
+        self.config = cfg or ModelConfig()
+        self.tnet = TNet(self.config)
+        self.encoder = PointMixerEncoder(self.config)
+        self.decoder = Decoder(2 * self.config.feature_dim + 3, self.config.decoder_channels)
+
+    def forward(self, a: torch.Tensor, b: torch.Tensor) -> GenRegOutput:
+        cfg = self.config
+        if a.shape[1] != cfg.num_points or b.shape[1] != cfg.num_points:
+            raise ValueError(f"GenRegNet expects {cfg.num_points} points, got {a.shape[1]} and {b.shape[1]}")
+        zero = torch.zeros_like(a[:, :1])
+        c_a, c_b = (centroid(a), centroid(b)) if cfg.center_inputs else (zero, zero)
+        a0, b0 = a - c_a, b - c_b
+        if cfg.prealign == "pca":
+            R = pca_prealign(a0, b0)
+            a0, b0 = a0 @ R.transpose(1, 2), b0 @ R
+        T_a, T_b = self.tnet(a0, b0)
+        a1, b1 = apply_transform(T_a, a0), apply_transform(T_b, b0)
+        features = self.encoder(torch.cat([a1, b1], dim=0))
+        fused_a, fused_b = feature_interaction(*features.chunk(2, dim=0))
+        offsets = self.decoder(torch.cat([torch.cat([fused_a, a1], -1), torch.cat([fused_b, b1], -1)], 0))
+        d_a, d_b = offsets.chunk(2, dim=0)
+        return GenRegOutput(a1 + d_a + c_b, b1 + d_b + c_a, T_a, T_b)
+
+
+def build_discriminator(cfg: ModelConfig) -> Discriminator:
+    return Discriminator(cfg.discriminator_hidden)

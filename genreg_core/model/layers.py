@@ -1,0 +1,47 @@
+"""Small building blocks shared by the model parts."""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import torch
+from torch import nn
+
+
+def norm_layer(kind: str, channels: int) -> nn.Module:
+    """Normalisation for (B, C, N) point features: GroupNorm (batch-size independent) or none."""
+    if kind == "group":
+        return nn.GroupNorm(min(8, channels), channels)
+    return nn.Identity()
+
+
+def point_mlp(
+    channels: Sequence[int], norm: str = "none", activation: type[nn.Module] = nn.ReLU
+) -> nn.Sequential:
+    """Shared per-point MLP as 1x1 convolutions on (B, C, N): conv -> norm -> activation per layer."""
+    layers: list[nn.Module] = []
+    for c_in, c_out in zip(channels[:-1], channels[1:]):
+        layers += [nn.Conv1d(c_in, c_out, 1), norm_layer(norm, c_out), activation()]
+    return nn.Sequential(*layers)
+
+
+def mlp(channels: Sequence[int], activation: type[nn.Module] = nn.ReLU) -> nn.Sequential:
+    """Fully connected layers with an activation between them (none after the last)."""
+    layers: list[nn.Module] = []
+    for i, (c_in, c_out) in enumerate(zip(channels[:-1], channels[1:])):
+        layers.append(nn.Linear(c_in, c_out))
+        if i < len(channels) - 2:
+            layers.append(activation())
+    return nn.Sequential(*layers)
+
+
+def zero_last_layer(module: nn.Module) -> None:
+    """Zero the weights and bias of the last Linear/Conv1d so the module starts as a no-op."""
+    last = [m for m in module.modules() if isinstance(m, (nn.Linear, nn.Conv1d))][-1]
+    nn.init.zeros_(last.weight)
+    nn.init.zeros_(last.bias)
+
+
+def centroid(points: torch.Tensor) -> torch.Tensor:
+    """(B, N, 3) -> (B, 1, 3) mean point."""
+    return points.mean(dim=1, keepdim=True)

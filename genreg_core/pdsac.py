@@ -1,0 +1,116 @@
+"""PDSAC: parallel and differentiable sample consensus (paper Sec. 3.3).
+
+Given one-to-one correspondences src_i <-> dst_i (for GenReg: A_i <-> A_g,i), PDSAC draws m minimal
+sets of k correspondences in one tensor operation, solves all m rigid transforms at once by SVD
+(Kabsch, det R = +1), scores every hypothesis by its truncated projection error over all points,
+    s_h = mean_i min(|R_h src_i + t_h - dst_i|, tau),
+and keeps the best (hard argmin, inference). For training it also returns the soft, temperature
+weighted selection w_h = softmax(-s_h / temperature) as in DSAC, so an expected loss
+sum_h w_h loss(T_h) passes gradients to the correspondences.
+
+Transforms are 4x4, column convention: dst ~ R src + t.
+
+Combining both directions (the paper's T_est = T_A^-1 T_B is written for row vectors and is
+ambiguous). Column convention: A_g = T_A A maps A's frame into B's, and B_g = T_B B maps B's frame
+into A's. Hence both T_A and T_B^-1 estimate T_BA, the transform from source A to target B, and the
+union of correspondences {A_i -> A_g,i} and {B_g,i -> B_i} all obey B-frame = T_BA A-frame.
+`pdsac_bidirectional` scores both candidates on that union, keeps the better one and refits it by
+least squares on the union's inliers: T_est = T_BA, so that target ~ T_est source.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+
+from genreg_core.config import PDSACConfig
+from genreg_core.geometry import apply_transform, invert_transform, kabsch
+
+
+@dataclass
+class PDSACResult:
+    """Output of PDSAC for a batch of B correspondence sets."""
+
+    transform: torch.Tensor  # (B, 4, 4) best hypothesis (refit on inliers when asked)
+    hypotheses: torch.Tensor  # (B, m, 4, 4)
+    scores: torch.Tensor  # (B, m) truncated mean projection error (lower is better)
+    weights: torch.Tensor  # (B, m) soft selection, sums to 1
+    inliers: torch.Tensor  # (B, N) bool, residual of `transform` below the threshold
+
+
+def sample_minimal_sets(
+    batch: int, num_points: int, m: int, k: int, generator: torch.Generator | None = None
+) -> torch.Tensor:
+    """(batch, m, k) indices; each minimal set holds k distinct points."""
+    keys = torch.rand(batch, m, num_points, generator=generator)
+    return keys.topk(k, dim=-1).indices
+
+
+def residuals(T: torch.Tensor, src: torch.Tensor, dst: torch.Tensor) -> torch.Tensor:
+    """|R src_i + t - dst_i| for T (..., 4, 4), src/dst (B, N, 3) broadcast over hypothesis dims."""
+    return torch.linalg.norm(apply_transform(T, src) - dst, dim=-1)
+
+
+def pdsac(
+    src: torch.Tensor,
+    dst: torch.Tensor,
+    cfg: PDSACConfig,
+    generator: torch.Generator | None = None,
+    refit: bool | None = None,
+) -> PDSACResult:
+    """Estimate dst ~ T src from (B, N, 3) correspondences. Differentiable through `weights`."""
+    B, N, _ = src.shape
+    idx = sample_minimal_sets(B, N, cfg.num_hypotheses, cfg.sample_size, generator).to(src.device)
+    flat = idx.reshape(B, -1, 1).expand(-1, -1, 3)
+    s = torch.gather(src, 1, flat).reshape(B, cfg.num_hypotheses, cfg.sample_size, 3)
+    d = torch.gather(dst, 1, flat).reshape(B, cfg.num_hypotheses, cfg.sample_size, 3)
+    hyps = kabsch(s, d)  # (B, m, 4, 4)
+    res = residuals(hyps, src[:, None], dst[:, None])  # (B, m, N)
+    scores = res.clamp_max(cfg.inlier_threshold).mean(dim=-1)
+    weights = torch.softmax(-scores / cfg.temperature, dim=-1)
+    best = scores.argmin(dim=-1)
+    T = hyps[torch.arange(B), best]
+    inliers = res[torch.arange(B), best] < cfg.inlier_threshold
+    if cfg.refit if refit is None else refit:
+        T, inliers = refit_on_inliers(T, src, dst, cfg.inlier_threshold)
+    return PDSACResult(T, hyps, scores, weights, inliers)
+
+
+def refit_on_inliers(
+    T: torch.Tensor, src: torch.Tensor, dst: torch.Tensor, threshold: float, rounds: int = 2
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Least-squares re-estimate on the inliers of T (a few rounds), keeping T where too few remain."""
+    inliers = residuals(T, src, dst) < threshold
+    for _ in range(rounds):
+        enough = inliers.sum(dim=-1) >= 3
+        refit = kabsch(src, dst, inliers.to(src.dtype))
+        T = torch.where(enough[:, None, None], refit, T)
+        inliers = residuals(T, src, dst) < threshold
+    return T, inliers
+
+
+def pdsac_bidirectional(
+    a: torch.Tensor,
+    a_gen: torch.Tensor,
+    b: torch.Tensor,
+    b_gen: torch.Tensor,
+    cfg: PDSACConfig,
+    generator: torch.Generator | None = None,
+) -> tuple[torch.Tensor, PDSACResult, PDSACResult, torch.Tensor]:
+    """One transform source A -> target B from both generated clouds (see module docstring).
+
+    Returns (T_est (B, 4, 4) with b ~ T_est a, result A->A_g, result B->B_g, union inlier mask (B, 2N)).
+    """
+    res_a = pdsac(a, a_gen, cfg, generator, refit=False)
+    res_b = pdsac(b, b_gen, cfg, generator, refit=False)
+    src = torch.cat([a, b_gen], dim=1)  # both in A's frame
+    dst = torch.cat([a_gen, b], dim=1)  # both in B's frame
+    candidates = torch.stack([res_a.transform, invert_transform(res_b.transform)], dim=1)  # (B, 2, 4, 4)
+    score = residuals(candidates, src[:, None], dst[:, None]).clamp_max(cfg.inlier_threshold).mean(-1)
+    T = candidates[torch.arange(a.shape[0]), score.argmin(dim=1)]
+    if cfg.refit:
+        T, inliers = refit_on_inliers(T, src, dst, cfg.inlier_threshold)
+    else:
+        inliers = residuals(T, src, dst) < cfg.inlier_threshold
+    return T, res_a, res_b, inliers

@@ -1,0 +1,194 @@
+"""The registration API every other part of genreg calls.
+
+    reg = Registrar.from_checkpoint("modelnet40")
+    result = reg.register(source, target)          # (N, 3) and (M, 3) arrays, any units
+    target_points ~ apply_transform(result.transformation, source_points)
+
+Conventions: `transformation` is 4x4, column vectors, target_from_source: x_t = R x_s + t, in the
+input's units. The source is moved into the target's frame. Internally both clouds are resampled to
+the model's N and normalised jointly by one similarity taken from the source's bounding box (the
+source fills the unit box, as in training); the result is mapped back to input units.
+"""
+
+from __future__ import annotations
+
+import os
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+import open3d as o3d
+import torch
+
+from genreg_core.checkpoint import load_checkpoint
+from genreg_core.config import RefineConfig, RegistrationConfig
+from genreg_core.errors import InvalidPointCloudError, NonFinitePointsError, TooFewPointsError
+from genreg_core.geometry import apply_transform, denormalize_transform, normalize_pair
+from genreg_core.model.genreg import GenRegNet
+from genreg_core.pdsac import pdsac_bidirectional
+
+
+@dataclass
+class RegistrationResult:
+    """Result of one registration. Transform and clouds are in the input's units."""
+
+    transformation: np.ndarray  # (4, 4) float64, target_from_source
+    source_generated: np.ndarray  # A_g: (n, 3) model-resolution source generated in the target frame
+    target_generated: np.ndarray  # B_g: (n, 3) model-resolution target generated in the source frame
+    aligned_source: np.ndarray  # (K, 3) float32: the finite source points, input order, in target frame
+    source_valid_mask: np.ndarray  # (N,) bool: which input source rows were finite (and kept)
+    fitness: float  # fraction of sampled source points with a target neighbour within the threshold
+    inlier_ratio: float  # fraction of generated correspondences (both directions) consistent with T
+    inlier_rmse: float  # RMS distance of the fitness inliers, input units
+    confidence: float  # in [0, 1]: geometric mean of fitness and inlier_ratio
+    timings: dict[str, float] = field(default_factory=dict)  # seconds per stage and 'total'
+
+
+def validate_cloud(points: object, name: str, min_points: int) -> tuple[np.ndarray, np.ndarray]:
+    """Check an (N, 3) real array; return (finite points as float64, finite-row mask).
+
+    Raises InvalidPointCloudError (shape/dtype), NonFinitePointsError (no finite point) or
+    TooFewPointsError (fewer than `min_points` finite points).
+    """
+    if not isinstance(points, np.ndarray):
+        if isinstance(points, torch.Tensor):
+            points = points.detach().cpu().numpy()
+        else:
+            raise InvalidPointCloudError(f"{name} must be a numpy array of shape (N, 3), got {type(points).__name__}")
+    if points.dtype.kind not in "fiu" or points.dtype == np.float16:
+        raise InvalidPointCloudError(f"{name} must hold float32/float64 (or integer) values, got dtype {points.dtype}")
+    if points.ndim != 2 or points.shape[1] != 3:
+        raise InvalidPointCloudError(f"{name} must have shape (N, 3), got {points.shape}")
+    mask = np.isfinite(points).all(axis=1)
+    count = int(mask.sum())
+    if count == 0:
+        raise NonFinitePointsError(f"{name} has no finite points ({len(points)} given, all NaN/Inf or empty)")
+    if count < min_points:
+        raise TooFewPointsError(f"{name} has {count} finite points; registration needs at least {min_points}")
+    return points[mask].astype(np.float64, copy=False), mask
+
+
+def subsample(points: np.ndarray, n: int, rng: np.random.Generator) -> np.ndarray:
+    """n random points: without replacement if there are enough, else all points plus repeats."""
+    if len(points) >= n:
+        return points[rng.choice(len(points), n, replace=False)]
+    extra = rng.choice(len(points), n - len(points), replace=True)
+    return points[rng.permutation(np.concatenate([np.arange(len(points)), extra]))]
+
+
+class Registrar:
+    """A loaded GenReg model plus its registration settings. Thread-compatible, not thread-safe."""
+
+    def __init__(self, model: GenRegNet, config: RegistrationConfig | None = None) -> None:
+        self.config = config or RegistrationConfig()
+        self.model = model.to(self.config.device).eval()
+
+    @classmethod
+    def from_checkpoint(
+        cls,
+        name_or_path: str | os.PathLike = "modelnet40",
+        config: RegistrationConfig | None = None,
+        num_points: int | None = None,
+    ) -> Registrar:
+        """Load a shipped model by name or a checkpoint file; CheckpointError if unusable."""
+        config = config or RegistrationConfig()
+        model, _ = load_checkpoint(name_or_path, num_points=num_points, device=config.device)
+        return cls(model, config)
+
+    @property
+    def num_points(self) -> int:
+        return self.model.config.num_points
+
+    def register(
+        self, source: np.ndarray, target: np.ndarray, initial_guess: np.ndarray | None = None
+    ) -> RegistrationResult:
+        """Register `source` onto `target`; `initial_guess` is a 4x4 target_from_source to start from."""
+        cfg = self.config
+        t0 = time.perf_counter()
+        src, src_mask = validate_cloud(source, "source", cfg.min_points)
+        tgt, _ = validate_cloud(target, "target", cfg.min_points)
+        init = np.eye(4) if initial_guess is None else _check_transform(initial_guess)
+        rng = np.random.default_rng(cfg.seed)
+        src_init = apply_transform(init, src)
+        a_np, b_np, _, offset, scale = normalize_pair(
+            subsample(src_init, self.num_points, rng), subsample(tgt, self.num_points, rng)
+        )
+        t1 = time.perf_counter()
+        device = cfg.device
+        a = torch.from_numpy(a_np)[None].to(device)
+        b = torch.from_numpy(b_np)[None].to(device)
+        with torch.no_grad():
+            out = self.model(a, b)
+            t2 = time.perf_counter()
+            gen = torch.Generator().manual_seed(cfg.seed) if cfg.seed is not None else None
+            T_n, _, _, inliers = pdsac_bidirectional(
+                a, out.source_generated, b, out.target_generated, cfg.pdsac, gen
+            )
+        T_n = T_n[0].double().cpu().numpy()
+        t3 = time.perf_counter()
+        if cfg.refine.method != "none":
+            T_n = refine_icp(a_np, b_np, T_n, cfg.refine)
+        t4 = time.perf_counter()
+        fitness, rmse_n = overlap_fitness(a_np, b_np, T_n, cfg.pdsac.inlier_threshold)
+        inlier_ratio = float(inliers.float().mean())
+        T = denormalize_transform(T_n, offset, scale) @ init
+        aligned = apply_transform(T, src).astype(np.float32)
+        a_gen = out.source_generated[0].double().cpu().numpy() * scale + offset
+        b_gen = out.target_generated[0].double().cpu().numpy() * scale + offset
+        t5 = time.perf_counter()
+        return RegistrationResult(
+            transformation=T,
+            source_generated=a_gen.astype(np.float32),
+            # B_g lives in the (initial-guess-moved) source frame; map it back to the source's own frame.
+            target_generated=apply_transform(np.linalg.inv(init), b_gen).astype(np.float32),
+            aligned_source=aligned,
+            source_valid_mask=src_mask,
+            fitness=fitness,
+            inlier_ratio=inlier_ratio,
+            inlier_rmse=rmse_n * scale,
+            confidence=float(np.sqrt(fitness * inlier_ratio)),
+            timings={
+                "preprocess": t1 - t0,
+                "network": t2 - t1,
+                "pdsac": t3 - t2,
+                "refine": t4 - t3,
+                "postprocess": t5 - t4,
+                "total": t5 - t0,
+            },
+        )
+
+
+def _check_transform(T: np.ndarray) -> np.ndarray:
+    T = np.asarray(T, dtype=np.float64)
+    if T.shape != (4, 4) or not np.isfinite(T).all():
+        raise InvalidPointCloudError(f"initial_guess must be a finite 4x4 matrix, got shape {T.shape}")
+    R = T[:3, :3]
+    if not np.allclose(R @ R.T, np.eye(3), atol=1e-4) or np.linalg.det(R) < 0:
+        raise InvalidPointCloudError("initial_guess must be a proper rigid transform (orthonormal R, det +1)")
+    return T
+
+
+def _o3d_cloud(points: np.ndarray) -> o3d.geometry.PointCloud:
+    return o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.asarray(points, dtype=np.float64)))
+
+
+def overlap_fitness(src: np.ndarray, tgt: np.ndarray, T: np.ndarray, threshold: float) -> tuple[float, float]:
+    """Open3D's fitness (share of moved source points with a target point within `threshold`) and RMSE."""
+    ev = o3d.pipelines.registration.evaluate_registration(_o3d_cloud(src), _o3d_cloud(tgt), threshold, T)
+    return float(ev.fitness), float(ev.inlier_rmse)
+
+
+def refine_icp(src: np.ndarray, tgt: np.ndarray, T_init: np.ndarray, cfg: RefineConfig) -> np.ndarray:
+    """A few Open3D ICP iterations from T_init (unit-box units), point-to-point or point-to-plane."""
+    reg = o3d.pipelines.registration
+    source, target = _o3d_cloud(src), _o3d_cloud(tgt)
+    if cfg.method == "point_to_plane":
+        target.estimate_normals(o3d.geometry.KDTreeSearchParamKNN(20))
+        estimation = reg.TransformationEstimationPointToPlane()
+    else:
+        estimation = reg.TransformationEstimationPointToPoint()
+    result = reg.registration_icp(
+        source, target, cfg.max_correspondence_distance, T_init, estimation,
+        reg.ICPConvergenceCriteria(max_iteration=cfg.max_iterations),
+    )
+    return np.asarray(result.transformation)
