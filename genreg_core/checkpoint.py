@@ -53,7 +53,7 @@ def load_checkpoint(
     path = resolve_checkpoint(name_or_path)
     try:
         blob = torch.load(path, map_location="cpu", weights_only=True)
-    except Exception as exc:  # pickle, zip and unpickler errors all mean: not a usable checkpoint
+    except Exception as exc:  # noqa: BLE001 - pickle, zip and unpickler errors all mean: unusable
         raise CheckpointError(f"checkpoint {path} is corrupt or not a genreg checkpoint: {exc}") from None
     if not isinstance(blob, dict) or blob.get("format") != FORMAT:
         raise CheckpointError(f"checkpoint {path} is not in format {FORMAT}")

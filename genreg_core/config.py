@@ -77,6 +77,7 @@ class RefineConfig:
     method: str = "none"  # "none", "point_to_point" or "point_to_plane"
     max_iterations: int = 10
     max_correspondence_distance: float = 0.05  # unit-box units (the source's bounding box is 1)
+    num_points: int = 5000  # points per cloud for ICP and the fitness measure
 
     def __post_init__(self) -> None:
         _check(
@@ -85,6 +86,7 @@ class RefineConfig:
         )
         _check(self.max_iterations >= 1, "refine.max_iterations must be >= 1")
         _check(self.max_correspondence_distance > 0, "refine.max_correspondence_distance must be > 0")
+        _check(self.num_points >= 16, "refine.num_points must be >= 16")
 
 
 @dataclass(frozen=True)

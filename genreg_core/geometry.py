@@ -45,11 +45,16 @@ def apply_transform(T: ArrayLike, points: ArrayLike) -> ArrayLike:
 
 
 def rotation_angle(R: ArrayLike) -> ArrayLike:
-    """Rotation angle in radians of (batched) 3x3 rotation matrices, numerically safe."""
+    """Rotation angle in radians of (batched) 3x3 rotations: atan2(|vee(R - R^T)| / 2, (tr R - 1) / 2).
+
+    Accurate for small angles (unlike arccos of the trace) and tolerant of slightly non-orthonormal
+    input such as poses stored as text.
+    """
     trace = R[..., 0, 0] + R[..., 1, 1] + R[..., 2, 2]
+    vee = [R[..., 2, 1] - R[..., 1, 2], R[..., 0, 2] - R[..., 2, 0], R[..., 1, 0] - R[..., 0, 1]]
     if isinstance(R, torch.Tensor):
-        return torch.arccos(torch.clamp((trace - 1.0) / 2.0, -1.0, 1.0))
-    return np.arccos(np.clip((trace - 1.0) / 2.0, -1.0, 1.0))
+        return torch.atan2(torch.linalg.norm(torch.stack(vee, -1), dim=-1) / 2.0, (trace - 1.0) / 2.0)
+    return np.arctan2(np.linalg.norm(np.stack(vee, -1), axis=-1) / 2.0, (trace - 1.0) / 2.0)
 
 
 def random_transform(

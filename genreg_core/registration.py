@@ -110,9 +110,11 @@ class Registrar:
         init = np.eye(4) if initial_guess is None else _check_transform(initial_guess)
         rng = np.random.default_rng(cfg.seed)
         src_init = apply_transform(init, src)
-        a_np, b_np, _, offset, scale = normalize_pair(
-            subsample(src_init, self.num_points, rng), subsample(tgt, self.num_points, rng)
-        )
+        src_n, tgt_n, _, offset, scale = normalize_pair(src_init, tgt)
+        a_np, b_np = subsample(src_n, self.num_points, rng), subsample(tgt_n, self.num_points, rng)
+        m = cfg.refine.num_points
+        dense_src = src_n if len(src_n) <= m else subsample(src_n, m, rng)
+        dense_tgt = tgt_n if len(tgt_n) <= m else subsample(tgt_n, m, rng)
         t1 = time.perf_counter()
         device = cfg.device
         a = torch.from_numpy(a_np)[None].to(device)
@@ -127,9 +129,9 @@ class Registrar:
         T_n = T_n[0].double().cpu().numpy()
         t3 = time.perf_counter()
         if cfg.refine.method != "none":
-            T_n = refine_icp(a_np, b_np, T_n, cfg.refine)
+            T_n = refine_icp(dense_src, dense_tgt, T_n, cfg.refine)
         t4 = time.perf_counter()
-        fitness, rmse_n = overlap_fitness(a_np, b_np, T_n, cfg.pdsac.inlier_threshold)
+        fitness, rmse_n = overlap_fitness(dense_src, dense_tgt, T_n, cfg.pdsac.inlier_threshold)
         inlier_ratio = float(inliers.float().mean())
         T = denormalize_transform(T_n, offset, scale) @ init
         aligned = apply_transform(T, src).astype(np.float32)

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import itertools
+
 import torch
 from torch import nn
 
@@ -19,7 +21,7 @@ class Decoder(nn.Module):
         super().__init__()
         chans = (in_channels, *hidden, 3)
         layers: list[nn.Module] = []
-        for i, (c_in, c_out) in enumerate(zip(chans[:-1], chans[1:])):
+        for i, (c_in, c_out) in enumerate(itertools.pairwise(chans)):
             layers.append(nn.Conv1d(c_in, c_out, 1))
             if i < len(chans) - 2:
                 layers.append(nn.GELU())

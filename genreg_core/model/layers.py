@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import itertools
 from collections.abc import Sequence
 
 import torch
@@ -20,7 +21,7 @@ def point_mlp(
 ) -> nn.Sequential:
     """Shared per-point MLP as 1x1 convolutions on (B, C, N): conv -> norm -> activation per layer."""
     layers: list[nn.Module] = []
-    for c_in, c_out in zip(channels[:-1], channels[1:]):
+    for c_in, c_out in itertools.pairwise(channels):
         layers += [nn.Conv1d(c_in, c_out, 1), norm_layer(norm, c_out), activation()]
     return nn.Sequential(*layers)
 
@@ -28,7 +29,7 @@ def point_mlp(
 def mlp(channels: Sequence[int], activation: type[nn.Module] = nn.ReLU) -> nn.Sequential:
     """Fully connected layers with an activation between them (none after the last)."""
     layers: list[nn.Module] = []
-    for i, (c_in, c_out) in enumerate(zip(channels[:-1], channels[1:])):
+    for i, (c_in, c_out) in enumerate(itertools.pairwise(channels)):
         layers.append(nn.Linear(c_in, c_out))
         if i < len(channels) - 2:
             layers.append(activation())

@@ -1,0 +1,86 @@
+"""Cloud preprocessing before registration: range filter, crop box, voxel downsample (numpy, no ROS).
+
+Conventions: points are rows of an (N, 3) array in the sensor's own frame and units (metres for
+ROS data, REP-103); ranges are Euclidean distances from that frame's origin. Every step keeps only
+finite points and returns a new array; the input is never modified.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from genreg_core.errors import ConfigError
+
+
+@dataclass(frozen=True)
+class PreprocessConfig:
+    """Which filters run, in this order: range, crop box, voxel grid. Zero / None switches one off."""
+
+    min_range: float = 0.0  # drop points closer than this to the origin (0: off)
+    max_range: float = 0.0  # drop points farther than this (0: off)
+    crop_min: tuple[float, float, float] | None = None  # axis-aligned box kept (both or neither)
+    crop_max: tuple[float, float, float] | None = None
+    voxel_size: float = 0.0  # voxel edge; one centroid per occupied voxel (0: off)
+
+    def __post_init__(self) -> None:
+        if self.min_range < 0 or self.max_range < 0 or self.voxel_size < 0:
+            raise ConfigError("min_range, max_range and voxel_size must be >= 0")
+        if self.max_range and self.min_range >= self.max_range:
+            raise ConfigError(f"min_range {self.min_range} must be < max_range {self.max_range}")
+        if (self.crop_min is None) != (self.crop_max is None):
+            raise ConfigError("crop_min and crop_max must be given together")
+        if self.crop_min is not None:
+            lo, hi = np.asarray(self.crop_min, float), np.asarray(self.crop_max, float)
+            if lo.shape != (3,) or hi.shape != (3,) or not (lo < hi).all():
+                raise ConfigError(f"crop box needs 3 values each with min < max, got {self.crop_min}, {self.crop_max}")
+
+
+def range_mask(points: np.ndarray, min_range: float = 0.0, max_range: float = 0.0) -> np.ndarray:
+    """(N,) bool: finite points with min_range <= |p| <= max_range (a zero bound is open)."""
+    sq = np.einsum("ij,ij->i", points, points)
+    keep = np.isfinite(sq)
+    if min_range > 0:
+        keep &= sq >= min_range**2
+    if max_range > 0:
+        keep &= sq <= max_range**2
+    return keep
+
+
+def crop_mask(points: np.ndarray, crop_min: np.ndarray, crop_max: np.ndarray) -> np.ndarray:
+    """(N,) bool: points inside the closed axis-aligned box [crop_min, crop_max]."""
+    lo, hi = np.asarray(crop_min), np.asarray(crop_max)
+    return ((points >= lo) & (points <= hi)).all(axis=1)
+
+
+def voxel_downsample(points: np.ndarray, voxel_size: float) -> np.ndarray:
+    """Centroid of the points in each occupied cubic voxel of edge `voxel_size` (grid anchored at 0).
+
+    Output order follows the voxels' first appearance in the input, so it is deterministic.
+    """
+    if voxel_size <= 0 or len(points) == 0:
+        return points.copy()
+    keys = np.floor(points / voxel_size).astype(np.int64)
+    keys -= keys.min(axis=0)
+    dims = keys.max(axis=0) + 1
+    if float(np.prod(dims.astype(np.float64))) < 2**62:  # one int64 key per voxel: a 1D sort
+        flat = (keys[:, 0] * dims[1] + keys[:, 1]) * dims[2] + keys[:, 2]
+        _, first, inverse = np.unique(flat, return_index=True, return_inverse=True)
+    else:  # a huge grid (tiny voxels over a huge span): sort the rows
+        _, first, inverse = np.unique(keys, axis=0, return_index=True, return_inverse=True)
+    inverse = inverse.reshape(-1)
+    counts = np.bincount(inverse)
+    sums = np.stack([np.bincount(inverse, weights=points[:, i]) for i in range(3)], axis=1)
+    centroids = (sums / counts[:, None]).astype(points.dtype)
+    return centroids[np.argsort(first, kind="stable")]
+
+
+def preprocess(points: np.ndarray, config: PreprocessConfig) -> np.ndarray:
+    """Apply the configured filters; returns the kept (and possibly downsampled) finite points."""
+    pts = np.asarray(points)
+    keep = range_mask(pts, config.min_range, config.max_range)
+    if config.crop_min is not None:
+        keep &= crop_mask(pts, config.crop_min, config.crop_max)
+    pts = pts[keep]
+    return voxel_downsample(pts, config.voxel_size) if config.voxel_size > 0 else pts
