@@ -95,12 +95,14 @@ class RegistrationConfig:
 
     pdsac: PDSACConfig = field(default_factory=PDSACConfig)
     refine: RefineConfig = field(default_factory=RefineConfig)
+    passes: int = 1  # network + PDSAC passes; pass k registers the residual left by pass k-1
     min_points: int = 32  # fewer finite points than this raises TooFewPointsError
     seed: int | None = 0  # subsampling and hypothesis seed; None draws fresh randomness
     device: str = "cpu"
 
     def __post_init__(self) -> None:
         _check(self.min_points >= 4, "min_points must be >= 4")
+        _check(self.passes >= 1, "passes must be >= 1")
 
 
 def _check(condition: bool, message: str) -> None:

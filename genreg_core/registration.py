@@ -25,7 +25,7 @@ from genreg_core.config import RefineConfig, RegistrationConfig
 from genreg_core.errors import InvalidPointCloudError, NonFinitePointsError, TooFewPointsError
 from genreg_core.geometry import apply_transform, denormalize_transform, normalize_pair
 from genreg_core.model.genreg import GenRegNet
-from genreg_core.pdsac import pdsac_bidirectional
+from genreg_core.pdsac import register_batch
 
 
 @dataclass
@@ -120,12 +120,9 @@ class Registrar:
         a = torch.from_numpy(a_np)[None].to(device)
         b = torch.from_numpy(b_np)[None].to(device)
         with torch.no_grad():
-            out = self.model(a, b)
-            t2 = time.perf_counter()
             gen = torch.Generator().manual_seed(cfg.seed) if cfg.seed is not None else None
-            T_n, _, _, inliers = pdsac_bidirectional(
-                a, out.source_generated, b, out.target_generated, cfg.pdsac, gen
-            )
+            stages: dict[str, float] = {}
+            T_n, out, inliers = register_batch(self.model, a, b, cfg.pdsac, cfg.passes, gen, stages)
         T_n = T_n[0].double().cpu().numpy()
         t3 = time.perf_counter()
         if cfg.refine.method != "none":
@@ -151,8 +148,8 @@ class Registrar:
             confidence=float(np.sqrt(fitness * inlier_ratio)),
             timings={
                 "preprocess": t1 - t0,
-                "network": t2 - t1,
-                "pdsac": t3 - t2,
+                "network": stages["network"],
+                "pdsac": stages["pdsac"],
                 "refine": t4 - t3,
                 "postprocess": t5 - t4,
                 "total": t5 - t0,

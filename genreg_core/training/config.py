@@ -80,6 +80,7 @@ class TrainConfig:
     checkpoint_every: int = 200
     validate_every: int = 500
     validation_pairs: int = 64
+    validation_passes: int = 2  # also report validation with this many network passes
     log_every: int = 10
 
 

@@ -26,7 +26,7 @@ from genreg_core.geometry import apply_transform, invert_transform
 from genreg_core.metrics import chamfer_distance, rotation_error_deg
 from genreg_core.model.discriminator import Discriminator
 from genreg_core.model.genreg import GenRegNet, GenRegOutput
-from genreg_core.pdsac import pdsac, pdsac_bidirectional
+from genreg_core.pdsac import pdsac, register_batch
 from genreg_core.training import losses as L
 from genreg_core.training.config import TrainConfig
 from genreg_core.training.datasets import build_pair_sets, make_batch, validation_batches
@@ -35,6 +35,7 @@ LOG_FIELDS = (
     "iteration", "generator_steps", "elapsed_s", "lr", "max_angle_deg", "loss", "absolute", "relative",
     "cycle", "adversarial", "transformation", "correspondence", "discriminator",
     "val_re_mean", "val_re_median", "val_te_mean", "val_cd_mean",
+    "val2_re_mean", "val2_re_median", "val2_te_mean", "val2_cd_mean",
 )
 
 
@@ -181,23 +182,26 @@ class Trainer:
     # ----------------------------------------------------------------- validation
     @torch.no_grad()
     def validate(self) -> dict[str, float]:
-        """RE/TE/CD of network + PDSAC (hard selection, refit) on the fixed validation pairs."""
+        """RE/TE/CD of network + PDSAC (hard selection, refit) on the fixed validation pairs, with
+        one pass (`val_*`) and with `validation_passes` passes on the residual (`val2_re_*`)."""
         self.generator.eval()
-        re, te, cd = [], [], []
-        gen = torch.Generator().manual_seed(self.cfg.seed)
-        for batch in self.val_batches:
-            a, b, T_gt = (batch[k].to(self.device) for k in ("source", "target", "transform"))
-            out = self.generator(a, b)
-            T_est, *_ = pdsac_bidirectional(a, out.source_generated, b, out.target_generated, self.cfg.pdsac, gen)
-            for i in range(len(a)):
-                Te, Tg = T_est[i].double().cpu().numpy(), T_gt[i].double().cpu().numpy()
-                re.append(rotation_error_deg(Te[:3, :3], Tg[:3, :3]))
-                te.append(float(np.linalg.norm(Te[:3, 3] - Tg[:3, 3])))
-                cd.append(chamfer_distance(apply_transform(Te, a[i].double().cpu().numpy()), b[i].cpu().numpy()))
-        return {
-            "val_re_mean": float(np.mean(re)), "val_re_median": float(np.median(re)),
-            "val_te_mean": float(np.mean(te)), "val_cd_mean": float(np.mean(cd)),
-        }
+        metrics: dict[str, float] = {}
+        for prefix, passes in (("val", 1), ("val2", self.cfg.validation_passes)):
+            if prefix == "val2" and passes <= 1:
+                continue
+            re, te, cd = [], [], []
+            gen = torch.Generator().manual_seed(self.cfg.seed)
+            for batch in self.val_batches:
+                a, b, T_gt = (batch[k].to(self.device) for k in ("source", "target", "transform"))
+                T_est, _, _ = register_batch(self.generator, a, b, self.cfg.pdsac, passes, gen)
+                for i in range(len(a)):
+                    Te, Tg = T_est[i].double().cpu().numpy(), T_gt[i].double().cpu().numpy()
+                    re.append(rotation_error_deg(Te[:3, :3], Tg[:3, :3]))
+                    te.append(float(np.linalg.norm(Te[:3, 3] - Tg[:3, 3])))
+                    cd.append(chamfer_distance(apply_transform(Te, a[i].double().cpu().numpy()), b[i].cpu().numpy()))
+            metrics |= {f"{prefix}_re_mean": float(np.mean(re)), f"{prefix}_re_median": float(np.median(re)),
+                        f"{prefix}_te_mean": float(np.mean(te)), f"{prefix}_cd_mean": float(np.mean(cd))}
+        return metrics
 
     # ----------------------------------------------------------------- state
     def _state(self) -> dict:
