@@ -1,0 +1,529 @@
+"""register_node: GenReg registration of two PointCloud2 streams as a ROS 2 node.
+
+Topics (relative names, remap them):
+- in  `source_cloud`, `target_cloud` (sensor_msgs/PointCloud2), paired by header stamp (see sync.py);
+- in  `initial_guess` (geometry_msgs/TransformStamped, target_from_source), overrides the parameter;
+- out `aligned_cloud` (PointCloud2): the source's finite points moved into the target frame, every other
+  field kept; frame_id = target frame, stamp = source stamp;
+- out `transform` (TransformStamped): header.frame_id = target frame (parent), child_frame_id = source
+  frame, stamp = source stamp; x_target = R x_source + t (REP-103 metres, REP-105 parent/child);
+- out `generated_cloud` (PointCloud2, if publish_generated): the network's generated source (A_g) in the
+  target frame;
+- out `/diagnostics` (diagnostic_msgs/DiagnosticArray): latency, fitness, counts and their reasons.
+
+Threads: subscription callbacks only check headers and pair stamps (O(1) in the cloud size); a worker
+thread decodes, registers and publishes. A newer pair replaces an older waiting one, so latency stays one
+registration at most and memory is bounded by the sync queues. Bad input is a throttled warning plus a
+counted drop; the node carries on.
+"""
+
+from __future__ import annotations
+
+import re
+import sys
+import threading
+import time
+from collections import Counter, deque
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+import rclpy
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+from geometry_msgs.msg import TransformStamped
+from rclpy.clock import Clock, ClockType
+from rclpy.executors import ExternalShutdownException
+from rclpy.node import Node
+from rclpy.parameter import Parameter
+from rclpy.qos import QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
+from scipy.spatial.transform import Rotation
+from sensor_msgs.msg import PointCloud2
+from std_msgs.msg import Header
+
+from genreg_core.config import PDSACConfig, RefineConfig, RegistrationConfig
+from genreg_core.errors import GenRegError
+from genreg_core.preprocess import PreprocessConfig, preprocess
+from genreg_ros import params
+from genreg_ros.pointcloud2 import (
+    DecodedCloud,
+    PointCloud2Error,
+    parse_layout,
+    read_points,
+    replace_points,
+    xyz_to_msg,
+)
+from genreg_ros.sync import SOURCE, TARGET, LatestSlot, Pair, PairSync
+
+NODE_NAME = "register_node"
+WARN_THROTTLE_S = 2.0  # per drop/failure reason
+
+_DROP_TEXT = {
+    "unmatched": "no {other} cloud within sync.slop ({slop} s) of its stamp",
+    "queue_full": "sync queue full (sync.queue_size)",
+    "no_target": "no target cloud received yet (latest_target mode)",
+    "superseded": "a waiting pair was replaced by a newer one (registration slower than the input)",
+}
+
+
+class StartupError(RuntimeError):
+    """The node cannot start (bad parameter, unloadable checkpoint, missing tf2_ros); one-line message."""
+
+
+@dataclass(frozen=True)
+class _Cloud:
+    """A received cloud with its resolved frame and its arrival time (time.monotonic)."""
+
+    msg: PointCloud2
+    frame: str
+    received: float
+
+
+class Stats:
+    """Thread-safe counters and recent figures behind /diagnostics."""
+
+    def __init__(self) -> None:
+        self.lock = threading.Lock()
+        self.start = time.monotonic()
+        self.received: Counter[str] = Counter()
+        self.dropped: Counter[str] = Counter()
+        self.failed: Counter[str] = Counter()
+        self.registered = 0
+        self.last_arrival: dict[str, float | None] = {SOURCE: None, TARGET: None}
+        self.latency = deque(maxlen=100)  # s, arrival of the pair's later cloud -> published
+        self.overhead = deque(maxlen=100)  # s, node work besides preprocessing and registration
+        self.last: dict[str, float] = {}
+        self.last_outcome = ""  # "", "registered" or "failed: <reason>"
+
+    def arrived(self, topic: str, now: float) -> None:
+        with self.lock:
+            self.received[topic] += 1
+            self.last_arrival[topic] = now
+
+    def drop(self, reason: str) -> None:
+        with self.lock:
+            self.dropped[reason] += 1
+
+    def fail(self, reason: str) -> None:
+        with self.lock:
+            self.failed[reason] += 1
+            self.last_outcome = f"failed: {reason}"
+
+    def ok(self, latency: float, overhead: float, figures: dict[str, float]) -> None:
+        with self.lock:
+            self.registered += 1
+            self.latency.append(latency)
+            self.overhead.append(overhead)
+            self.last = dict(figures)
+            self.last_outcome = "registered"
+
+
+def transform_points(T: np.ndarray, points: np.ndarray) -> np.ndarray:
+    """x' = R x + t for row points, computed in the points' own dtype."""
+    R = T[:3, :3].astype(points.dtype)
+    return points @ R.T + T[:3, 3].astype(points.dtype)
+
+
+def matrix_to_msg(T: np.ndarray, header: Header, child_frame: str) -> TransformStamped:
+    """TransformStamped of T (parent = header.frame_id, child = child_frame, x_parent = R x_child + t)."""
+    msg = TransformStamped(header=header, child_frame_id=child_frame)
+    msg.transform.translation.x, msg.transform.translation.y, msg.transform.translation.z = map(float, T[:3, 3])
+    q = Rotation.from_matrix(T[:3, :3]).as_quat()  # x, y, z, w
+    r = msg.transform.rotation
+    r.x, r.y, r.z, r.w = map(float, q)
+    return msg
+
+
+def msg_to_matrix(msg: TransformStamped) -> np.ndarray:
+    """4x4 matrix of a TransformStamped (ValueError for a zero or non-finite quaternion)."""
+    tr, r = msg.transform.translation, msg.transform.rotation
+    q = np.array([r.x, r.y, r.z, r.w])
+    t = np.array([tr.x, tr.y, tr.z])
+    if not (np.isfinite(q).all() and np.isfinite(t).all()) or np.linalg.norm(q) < 1e-6:
+        raise ValueError("transform has a zero or non-finite quaternion or translation")
+    T = np.eye(4)
+    T[:3, :3] = Rotation.from_quat(q / np.linalg.norm(q)).as_matrix()
+    T[:3, 3] = t
+    return T
+
+
+def stamp_ns(header: Header) -> int:
+    return int(header.stamp.sec) * 1_000_000_000 + int(header.stamp.nanosec)
+
+
+def registration_config(values: dict[str, Any]) -> RegistrationConfig:
+    """The core's RegistrationConfig from the node's parameter values."""
+    return RegistrationConfig(
+        pdsac=PDSACConfig(
+            num_hypotheses=values["pdsac.num_hypotheses"],
+            sample_size=values["pdsac.sample_size"],
+            inlier_threshold=values["pdsac.inlier_threshold"],
+        ),
+        refine=RefineConfig(
+            method=values["refine.method"],
+            max_iterations=values["refine.max_iterations"],
+            max_correspondence_distance=values["refine.max_correspondence_distance"],
+        ),
+        seed=None if values["seed"] < 0 else values["seed"],
+        device=values["model.device"],
+    )
+
+
+def preprocess_config(values: dict[str, Any]) -> PreprocessConfig:
+    crop_min, crop_max = values["preprocess.crop_min"], values["preprocess.crop_max"]
+    return PreprocessConfig(
+        min_range=values["preprocess.min_range"],
+        max_range=values["preprocess.max_range"],
+        crop_min=tuple(crop_min) if crop_min else None,
+        crop_max=tuple(crop_max) if crop_max else None,
+        voxel_size=values["preprocess.voxel_size"],
+    )
+
+
+def _snake(name: str) -> str:
+    return re.sub(r"(?<!^)(?=[A-Z])", "_", name.removesuffix("Error")).lower()
+
+
+class RegisterNode(Node):
+    """The GenReg registration node. Construct inside an rclpy context; call `close()` before destroying."""
+
+    def __init__(self, **node_kwargs: Any) -> None:
+        super().__init__(NODE_NAME, **node_kwargs)
+        try:
+            self._values = params.declare(self)
+            self._registrar = self._load_registrar(self._values)
+            self._tf_broadcaster = self._make_tf_broadcaster() if self._values["publish_tf"] else None
+        except (params.ParamError, StartupError) as exc:
+            self.destroy_node()
+            raise StartupError(str(exc)) from None
+        v = self._values
+        self._lock = threading.Lock()  # guards _sync
+        self._sync = PairSync(v["sync.slop"], v["sync.queue_size"], v["sync.mode"])
+        self._slot = LatestSlot()
+        self._stats = Stats()
+        self._warned: dict[str, float] = {}
+        self._stale: set[str] = set()
+        self._guess_topic: np.ndarray | None = None
+        self._last_T: np.ndarray | None = None
+        self._target_cache: tuple[PointCloud2, DecodedCloud, np.ndarray, PreprocessConfig] | None = None
+
+        sub_qos = QoSProfile(depth=v["qos.depth"], reliability=ReliabilityPolicy.RELIABLE)
+        if v["qos.reliability"] == "best_effort":
+            sub_qos = QoSProfile(**{**_qos_dict(qos_profile_sensor_data), "depth": v["qos.depth"]})
+        pub_qos = QoSProfile(depth=5, reliability=ReliabilityPolicy[v["qos.publisher_reliability"].upper()])
+        self._sub_source = self.create_subscription(
+            PointCloud2, "source_cloud", lambda m: self._on_cloud(SOURCE, m), sub_qos)
+        self._sub_target = self.create_subscription(
+            PointCloud2, "target_cloud", lambda m: self._on_cloud(TARGET, m), sub_qos)
+        self._sub_guess = self.create_subscription(TransformStamped, "initial_guess", self._on_guess, 1)
+        self._pub_aligned = self.create_publisher(PointCloud2, "aligned_cloud", pub_qos)
+        self._pub_transform = self.create_publisher(TransformStamped, "transform", pub_qos)
+        self._pub_generated = self.create_publisher(PointCloud2, "generated_cloud", pub_qos)
+        self._pub_diag = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
+        # A steady clock: diagnostics keep coming when sim time (use_sim_time) stalls.
+        self._diag_timer = self.create_timer(
+            v["diagnostics.period"], self._publish_diagnostics, clock=Clock(clock_type=ClockType.STEADY_TIME))
+        self.add_on_set_parameters_callback(params.make_validator(self, self._values))
+        self.add_post_set_parameters_callback(self._on_params_set)
+        self._worker = threading.Thread(target=self._work, name="genreg_worker", daemon=True)
+        self._worker.start()
+        self.get_logger().info(
+            f"ready: model {v['model.checkpoint']} (N={self._registrar.num_points}, {v['model.device']}), "
+            f"sync {v['sync.mode']} slop {v['sync.slop']} s, subscription QoS {v['qos.reliability']}; "
+            f"listening on {self._sub_source.topic_name} and {self._sub_target.topic_name}")
+
+    # ----------------------------------------------------------------- start-up
+    def _load_registrar(self, values: dict[str, Any]):
+        from genreg_core.registration import Registrar
+
+        if values["model.num_threads"] > 0:
+            import torch
+
+            torch.set_num_threads(values["model.num_threads"])
+        try:
+            return Registrar.from_checkpoint(
+                values["model.checkpoint"],
+                config=registration_config(values),
+                num_points=values["model.num_points"] or None,
+            )
+        except GenRegError as exc:
+            raise StartupError(str(exc)) from None
+        except (RuntimeError, AssertionError, OSError) as exc:  # e.g. a cuda device on a CPU-only torch
+            raise StartupError(f"cannot load model {values['model.checkpoint']!r}: {exc}") from None
+
+    def _make_tf_broadcaster(self):
+        try:
+            from tf2_ros import TransformBroadcaster
+        except ImportError as exc:
+            raise StartupError(
+                f"publish_tf is true but tf2_ros cannot be imported ({exc}); install tf2_ros (ros-<distro>-tf2-ros) "
+                "or set publish_tf to false and use the 'transform' topic") from None
+        return TransformBroadcaster(self)
+
+    # ----------------------------------------------------------------- parameters
+    def _on_params_set(self, changed: list[Parameter]) -> None:
+        values = dict(self._values)
+        for p in changed:
+            if p.name in params.BY_NAME:
+                spec = params.BY_NAME[p.name]
+                values[p.name] = list(p.value or []) if spec.kind is params.DOUBLE_ARRAY else p.value
+        sync_changed = any(values[k] != self._values[k] for k in ("sync.slop", "sync.queue_size", "sync.mode"))
+        self._values = values  # replaced, never mutated: readers take one consistent snapshot
+        if sync_changed:
+            with self._lock:
+                self._sync = PairSync(values["sync.slop"], values["sync.queue_size"], values["sync.mode"])
+        if any(p.name == "use_last_result_as_guess" for p in changed):
+            self._last_T = None
+
+    # ----------------------------------------------------------------- callbacks (short)
+    def _on_cloud(self, topic: str, msg: PointCloud2) -> None:
+        now = time.monotonic()
+        self._stats.arrived(topic, now)
+        try:
+            values = self._values
+            frame = values[f"{topic}_frame"] or msg.header.frame_id
+            if not frame:
+                self._drop("empty_frame_id", f"{topic} cloud has an empty header.frame_id and {topic}_frame is unset")
+                return
+            try:
+                parse_layout(msg)
+            except PointCloud2Error as exc:
+                self._drop(exc.reason, f"{topic} cloud: {exc}")
+                return
+            num = int(msg.width) * int(msg.height)
+            if num > values["max_points"]:
+                self._drop("too_many_points", f"{topic} cloud has {num} points, max_points is {values['max_points']}")
+                return
+            stamp = stamp_ns(msg.header)
+            with self._lock:
+                add = self._sync.add_source if topic == SOURCE else self._sync.add_target
+                pair, drops = add(stamp, _Cloud(msg, frame, now))
+                slop = self._sync.slop_ns / 1e9
+            for d in drops:
+                other = TARGET if d.topic == SOURCE else SOURCE
+                text = _DROP_TEXT.get(d.reason, d.reason).format(other=other, slop=slop)
+                self._drop(d.reason, f"{d.topic} cloud stamped {d.stamp / 1e9:.3f} s dropped: {text}")
+            if pair is not None and self._slot.put(pair) is not None:
+                self._drop("superseded", f"pair dropped: {_DROP_TEXT['superseded']}")
+        except Exception as exc:  # noqa: BLE001 (one bad message must never stop the node)
+            self._drop("internal_error", f"{topic} cloud: unexpected {type(exc).__name__}: {exc}")
+
+    def _on_guess(self, msg: TransformStamped) -> None:
+        try:
+            self._guess_topic = msg_to_matrix(msg)
+        except ValueError as exc:
+            self._drop("bad_initial_guess", f"initial_guess message ignored: {exc}")
+
+    # ----------------------------------------------------------------- worker
+    def _work(self) -> None:
+        while not self._slot.closed:
+            pair = self._slot.take(timeout=0.5)
+            if pair is None:
+                continue
+            try:
+                self._process(pair)
+            except Exception as exc:  # noqa: BLE001 (keep the worker alive whatever one pair does)
+                self._fail("internal_error", f"unexpected {type(exc).__name__}: {exc}")
+
+    def _process(self, pair: Pair) -> None:
+        values = self._values
+        src_cloud, tgt_cloud = pair.source, pair.target
+        t0 = time.perf_counter()
+        pre = preprocess_config(values)
+        try:
+            src = read_points(src_cloud.msg, values["max_points"])
+        except PointCloud2Error as exc:
+            self._drop(exc.reason, f"source cloud: {exc}")
+            return
+        t1 = time.perf_counter()
+        try:
+            _, tgt_points, t_tgt = self._decode_target(tgt_cloud.msg, values["max_points"], pre)
+        except PointCloud2Error as exc:
+            self._drop(exc.reason, f"target cloud: {exc}")
+            return
+        t2 = time.perf_counter()
+        src_points = preprocess(src.points, pre)
+        if self._registrar.config != (cfg := registration_config(values)):
+            self._registrar.config = cfg
+        t3 = time.perf_counter()
+        try:
+            result = self._registrar.register(src_points, tgt_points, initial_guess=self._initial_guess(values))
+        except GenRegError as exc:
+            self._fail(_snake(type(exc).__name__), f"registration failed: {exc}")
+            return
+        t4 = time.perf_counter()
+        if result.fitness < values["min_fitness"]:
+            self._fail("low_fitness", f"fitness {result.fitness:.3f} < min_fitness {values['min_fitness']}")
+            return
+        T = result.transformation
+        header = Header(stamp=src_cloud.msg.header.stamp, frame_id=tgt_cloud.frame)
+        aligned = replace_points(header, src, transform_points(T, src.points))
+        transform = matrix_to_msg(T, header, src_cloud.frame)
+        t5 = time.perf_counter()
+        self._pub_aligned.publish(aligned)
+        self._pub_transform.publish(transform)
+        if self._tf_broadcaster is not None:
+            self._tf_broadcaster.sendTransform(transform)
+        if values["publish_generated"]:
+            self._pub_generated.publish(xyz_to_msg(header, result.source_generated))
+        t6 = time.perf_counter()
+        if values["use_last_result_as_guess"]:
+            self._last_T = T
+        latency = time.monotonic() - max(src_cloud.received, tgt_cloud.received)
+        overhead = (t1 - t0) + t_tgt + (t6 - t4)
+        self._stats.ok(latency, overhead, {
+            "fitness": result.fitness, "confidence": result.confidence, "inlier_rmse_m": result.inlier_rmse,
+            "decode_ms": 1e3 * ((t1 - t0) + t_tgt), "preprocess_ms": 1e3 * ((t3 - t2) + (t2 - t1 - t_tgt)),
+            "register_ms": 1e3 * (t4 - t3), "encode_ms": 1e3 * (t5 - t4), "publish_ms": 1e3 * (t6 - t5),
+            "points_in": float(src.num_input), "points_registered": float(len(src_points)),
+        })
+
+    def _decode_target(
+        self, msg: PointCloud2, max_points: int, pre: PreprocessConfig
+    ) -> tuple[DecodedCloud, np.ndarray, float]:
+        """Decoded and preprocessed target, cached while the same message is reused (latest_target)."""
+        cache = self._target_cache
+        if cache is not None and cache[0] is msg and cache[3] == pre:
+            return cache[1], cache[2], 0.0
+        t0 = time.perf_counter()
+        decoded = read_points(msg, max_points)
+        t_decode = time.perf_counter() - t0
+        points = preprocess(decoded.points, pre)
+        self._target_cache = (msg, decoded, points, pre)
+        return decoded, points, t_decode
+
+    def _initial_guess(self, values: dict[str, Any]) -> np.ndarray | None:
+        if self._guess_topic is not None:
+            return self._guess_topic
+        if values["use_last_result_as_guess"] and self._last_T is not None:
+            return self._last_T
+        return params.guess_matrix(values["initial_guess"])
+
+    # ----------------------------------------------------------------- drops, failures, diagnostics
+    def _drop(self, reason: str, text: str) -> None:
+        self._stats.drop(reason)
+        self._warn(reason, f"dropped ({reason}): {text}")
+
+    def _fail(self, reason: str, text: str) -> None:
+        self._stats.fail(reason)
+        self._warn(reason, f"failed ({reason}): {text}")
+
+    def _warn(self, key: str, text: str) -> None:
+        now = time.monotonic()
+        if now - self._warned.get(key, -1e9) >= WARN_THROTTLE_S:
+            self._warned[key] = now
+            self.get_logger().warning(text)
+
+    def _publish_diagnostics(self) -> None:
+        v, s = self._values, self._stats
+        now = time.monotonic()
+        with s.lock:
+            dropped, failed, received = Counter(s.dropped), Counter(s.failed), Counter(s.received)
+            registered, last, outcome = s.registered, dict(s.last), s.last_outcome
+            arrivals = dict(s.last_arrival)
+            latency = list(s.latency)
+            overhead = list(s.overhead)
+        level, notes = DiagnosticStatus.OK, []
+        for topic in (SOURCE, TARGET):
+            silent = now - (arrivals[topic] or s.start)
+            if silent > v["diagnostics.stale_timeout"]:
+                level = DiagnosticStatus.WARN
+                what = "no" if arrivals[topic] is None else "no new"
+                notes.append(f"{what} {topic} cloud for {silent:.1f} s")
+                if topic not in self._stale:
+                    self._stale.add(topic)
+                    self.get_logger().warning(f"{notes[-1]} (topic {self._topic(topic)})")
+            else:
+                self._stale.discard(topic)
+        if outcome.startswith("failed"):
+            level = DiagnosticStatus.WARN
+            notes.append(f"last registration {outcome}")
+        summary = f"registered {registered}, dropped {sum(dropped.values())}, failed {sum(failed.values())}"
+        kv = {
+            "registered": registered,
+            "dropped": sum(dropped.values()),
+            "failed": sum(failed.values()),
+            "received.source": received[SOURCE],
+            "received.target": received[TARGET],
+            "latency_ms.last": 1e3 * latency[-1] if latency else float("nan"),
+            "latency_ms.median": 1e3 * float(np.median(latency)) if latency else float("nan"),
+            "overhead_ms.median": 1e3 * float(np.median(overhead)) if overhead else float("nan"),
+            **{f"dropped.{k}": n for k, n in sorted(dropped.items())},
+            **{f"failed.{k}": n for k, n in sorted(failed.items())},
+            **{f"last.{k}": x for k, x in last.items()},
+        }
+        status = DiagnosticStatus(
+            level=level,
+            name=f"{self.get_name()}: registration",
+            message="; ".join(notes + [summary]),
+            hardware_id=self.get_fully_qualified_name(),
+            values=[KeyValue(key=k, value=_fmt(x)) for k, x in kv.items()],
+        )
+        self._pub_diag.publish(DiagnosticArray(header=Header(stamp=self.get_clock().now().to_msg()), status=[status]))
+
+    def _topic(self, topic: str) -> str:
+        return (self._sub_source if topic == SOURCE else self._sub_target).topic_name
+
+    # ----------------------------------------------------------------- shutdown
+    def close(self) -> None:
+        """Stop the worker (waits for the pair being registered) and destroy the node."""
+        self._slot.close()
+        self._worker.join(timeout=10.0)
+        self.destroy_node()
+
+
+def _fmt(x: Any) -> str:
+    return f"{x:.4g}" if isinstance(x, float) else str(x)
+
+
+def _qos_dict(profile: QoSProfile) -> dict[str, Any]:
+    return {
+        "history": profile.history, "depth": profile.depth, "reliability": profile.reliability,
+        "durability": profile.durability,
+    }
+
+
+def _node_fqn(argv: list[str]) -> str:
+    """The node's fully qualified name after `-r __ns:=...` / `-r __node:=...` remaps in argv."""
+    ns, name = "", NODE_NAME
+    for arg in argv:
+        if arg.startswith("__ns:="):
+            ns = "/" + arg.split(":=", 1)[1].strip("/")
+        elif arg.startswith("__node:="):
+            name = arg.split(":=", 1)[1]
+    return f"{ns.rstrip('/')}/{name}"
+
+
+def _error(text: str) -> int:
+    print(f"{NODE_NAME}: error: {' '.join(text.split())}", file=sys.stderr, flush=True)
+    return 1
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Entry point of `ros2 run genreg_ros register_node [--ros-args ...]`; returns the exit code."""
+    argv = list(sys.argv if argv is None else argv)
+    try:
+        for path in params.params_files(argv):
+            params.check_params_file(path, _node_fqn(argv))
+    except params.ParamError as exc:
+        return _error(str(exc))
+    try:
+        rclpy.init(args=argv)
+    except Exception as exc:  # noqa: BLE001 (rcl argument errors: report one line, not a traceback)
+        return _error(re.sub(r", at [^,]*:\d+", "", str(exc)))
+    node = None
+    try:
+        node = RegisterNode()
+        rclpy.spin(node)
+    except StartupError as exc:
+        return _error(str(exc))
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    finally:
+        if node is not None:
+            node.close()
+        rclpy.try_shutdown()
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,168 @@
+"""Pairing of source and target clouds by header stamp, plus the one-slot hand-over to the worker.
+
+Pure Python (no rclpy): stamps are integer nanoseconds, items are opaque. Not thread-safe; the node
+calls it under its own lock.
+
+Policies (`PairSync.mode`):
+- "approximate": a message is paired on arrival with the queued message of the other topic whose
+  stamp is nearest, if within `slop`. Greedy, so the lowest latency wins over a possibly better later
+  match. Each topic keeps at most `queue_size` unpaired messages. Messages that can no longer be
+  paired are dropped and counted; per topic, stamps are assumed to increase.
+- "latest_target": each source is paired at once with the most recent target (a fixed or slowly
+  changing reference); `slop` is not used. Sources before the first target are dropped.
+
+Drop reasons: 'queue_full' (evicted, oldest first), 'unmatched' (the other topic has moved past
+stamp + slop, or a newer pair was made), 'no_target' (latest_target mode, no target yet).
+"""
+
+from __future__ import annotations
+
+import bisect
+import threading
+from collections import Counter, deque
+from dataclasses import dataclass
+from typing import Any
+
+MODES = ("approximate", "latest_target")
+SOURCE, TARGET = "source", "target"
+
+
+@dataclass(frozen=True)
+class Pair:
+    """A source and a target message to register, with their stamps in nanoseconds."""
+
+    source: Any
+    target: Any
+    source_stamp: int
+    target_stamp: int
+
+
+@dataclass(frozen=True)
+class Drop:
+    """One dropped message: which topic, its stamp and why."""
+
+    topic: str
+    stamp: int
+    reason: str
+
+
+@dataclass
+class _Entry:
+    stamp: int
+    item: Any
+
+
+class PairSync:
+    """Approximate-time (or latest-target) pairing with bounded queues and counted drops."""
+
+    def __init__(self, slop: float, queue_size: int, mode: str = "approximate") -> None:
+        if mode not in MODES:
+            raise ValueError(f"mode must be one of {MODES}, got {mode!r}")
+        if slop < 0 or queue_size < 1:
+            raise ValueError("slop must be >= 0 and queue_size >= 1")
+        self.slop_ns = round(slop * 1e9)
+        self.queue_size = int(queue_size)
+        self.mode = mode
+        self._queues: dict[str, deque[_Entry]] = {SOURCE: deque(), TARGET: deque()}
+        self._newest: dict[str, int | None] = {SOURCE: None, TARGET: None}
+        self._latest_target: _Entry | None = None
+        self.drops: Counter[str] = Counter()  # reason -> count, over both topics
+
+    def __len__(self) -> int:
+        """Messages held (queued, plus the latest target in latest_target mode)."""
+        return sum(len(q) for q in self._queues.values()) + (self._latest_target is not None)
+
+    def add_source(self, stamp: int, item: Any) -> tuple[Pair | None, list[Drop]]:
+        """Offer a source message; returns the pair it completed (if any) and the messages dropped."""
+        if self.mode == "latest_target":
+            target = self._latest_target
+            if target is None:
+                return None, self._count([Drop(SOURCE, stamp, "no_target")])
+            return Pair(item, target.item, stamp, target.stamp), []
+        return self._add(SOURCE, stamp, item)
+
+    def add_target(self, stamp: int, item: Any) -> tuple[Pair | None, list[Drop]]:
+        """Offer a target message; see `add_source`."""
+        if self.mode == "latest_target":
+            self._latest_target = _Entry(stamp, item)
+            return None, []
+        return self._add(TARGET, stamp, item)
+
+    def clear(self) -> None:
+        """Forget every held message (not counted as drops)."""
+        for q in self._queues.values():
+            q.clear()
+        self._latest_target = None
+
+    def _add(self, topic: str, stamp: int, item: Any) -> tuple[Pair | None, list[Drop]]:
+        other = TARGET if topic == SOURCE else SOURCE
+        own_q, other_q = self._queues[topic], self._queues[other]
+        self._newest[topic] = stamp if self._newest[topic] is None else max(self._newest[topic], stamp)
+        drops: list[Drop] = []
+        best = min(other_q, key=lambda e: abs(e.stamp - stamp), default=None)
+        if best is not None and abs(best.stamp - stamp) <= self.slop_ns:
+            # Everything older than the two paired messages can no longer be paired in order.
+            drops += self._pop_older(other, other_q, best.stamp, inclusive=True, keep=best)
+            drops += self._pop_older(topic, own_q, stamp, inclusive=False)
+            other_q.remove(best)
+            pair = Pair(item, best.item, stamp, best.stamp) if topic == SOURCE else Pair(
+                best.item, item, best.stamp, stamp
+            )
+            return pair, self._count(drops)
+        bisect.insort(own_q, _Entry(stamp, item), key=lambda e: e.stamp)
+        while len(own_q) > self.queue_size:
+            drops.append(Drop(topic, own_q.popleft().stamp, "queue_full"))
+        for name, q in self._queues.items():
+            newest_other = self._newest[TARGET if name == SOURCE else SOURCE]
+            if newest_other is not None:
+                drops += self._pop_older(name, q, newest_other - self.slop_ns, inclusive=False)
+        return None, self._count(drops)
+
+    @staticmethod
+    def _pop_older(topic: str, q: deque[_Entry], limit: int, inclusive: bool, keep: Any = None) -> list[Drop]:
+        """Remove entries with stamp < limit (<= if inclusive), except `keep`, as 'unmatched' drops."""
+        gone = [e for e in q if e is not keep and (e.stamp < limit or (inclusive and e.stamp == limit))]
+        for e in gone:
+            q.remove(e)
+        return [Drop(topic, e.stamp, "unmatched") for e in gone]
+
+    def _count(self, drops: list[Drop]) -> list[Drop]:
+        self.drops.update(d.reason for d in drops)
+        return drops
+
+
+class LatestSlot:
+    """A one-item mailbox between callbacks and the worker: a newer item replaces a waiting one.
+
+    Thread-safe. Memory stays bounded (one waiting item) and latency stays one registration at most.
+    """
+
+    def __init__(self) -> None:
+        self._cond = threading.Condition()
+        self._item: Any = None
+        self._closed = False
+
+    def put(self, item: Any) -> Any:
+        """Hand over `item`; returns the waiting item it replaced (None if the slot was empty)."""
+        with self._cond:
+            replaced, self._item = self._item, item
+            self._cond.notify()
+            return replaced
+
+    def take(self, timeout: float | None = None) -> Any:
+        """Wait for an item and remove it; None on timeout or after `close()`."""
+        with self._cond:
+            if self._item is None and not self._closed:
+                self._cond.wait(timeout)
+            item, self._item = self._item, None
+            return item
+
+    def close(self) -> None:
+        """Wake every waiting `take` for shutdown."""
+        with self._cond:
+            self._closed = True
+            self._cond.notify_all()
+
+    @property
+    def closed(self) -> bool:
+        return self._closed

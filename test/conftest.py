@@ -1,0 +1,61 @@
+"""Shared fixtures. ROS: every rclpy process of a test session stays on loopback
+(ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST) in its own random ROS_DOMAIN_ID, and ROS tests put their topics
+under a random namespace, so parallel test runs on one machine never see each other's messages.
+"""
+
+from __future__ import annotations
+
+import os
+import secrets
+from pathlib import Path
+
+import pytest
+
+REPO = Path(__file__).resolve().parent.parent
+FASTDDS_PROFILE = REPO / "config" / "fastdds_large_clouds.xml"
+
+
+@pytest.fixture(scope="session", autouse=True)
+def ros_env() -> dict[str, str]:
+    """Set the ROS discovery variables for this process and every subprocess it starts."""
+    env = {
+        "ROS_AUTOMATIC_DISCOVERY_RANGE": "LOCALHOST",
+        "ROS_DOMAIN_ID": str(1 + secrets.randbelow(100)),  # 1..100: valid Fast DDS ports on Linux
+        "RCUTILS_COLORIZED_OUTPUT": "0",
+    }
+    saved = {k: os.environ.get(k) for k in env}
+    os.environ.update(env)
+    yield env
+    for k, v in saved.items():
+        if v is None:
+            os.environ.pop(k, None)
+        else:
+            os.environ[k] = v
+
+
+@pytest.fixture(scope="session")
+def ros_namespace() -> str:
+    """A topic namespace unique to this test session."""
+    return f"/genreg_test_{secrets.token_hex(4)}"
+
+
+@pytest.fixture(scope="session")
+def fastdds_profile() -> Path:
+    """The shipped Fast DDS profile for large clouds."""
+    assert FASTDDS_PROFILE.is_file()
+    return FASTDDS_PROFILE
+
+
+@pytest.fixture(scope="session")
+def untrained_checkpoint(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """A small (N=256) randomly initialised GenReg checkpoint: trained weights are not needed to test plumbing."""
+    import torch
+
+    from genreg_core.checkpoint import save_checkpoint
+    from genreg_core.config import ModelConfig
+    from genreg_core.model.genreg import GenRegNet
+
+    torch.manual_seed(0)
+    path = tmp_path_factory.mktemp("ckpt") / "untrained_n256.pt"
+    save_checkpoint(GenRegNet(ModelConfig(num_points=256)), path)
+    return path

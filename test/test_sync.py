@@ -1,0 +1,139 @@
+"""Stamp pairing and the worker hand-over slot (pure Python, no DDS)."""
+
+from __future__ import annotations
+
+import threading
+import time
+
+import numpy as np
+import pytest
+
+from genreg_ros.sync import LatestSlot, PairSync
+
+MS = 1_000_000  # ns
+
+
+def test_pairs_within_slop_either_arrival_order():
+    s = PairSync(slop=0.01, queue_size=5)
+    assert s.add_source(100 * MS, "s0") == (None, [])
+    pair, drops = s.add_target(105 * MS, "t0")
+    assert (pair.source, pair.target, pair.source_stamp, pair.target_stamp) == ("s0", "t0", 100 * MS, 105 * MS)
+    assert drops == [] and len(s) == 0
+    assert s.add_target(200 * MS, "t1")[0] is None
+    pair, _ = s.add_source(195 * MS, "s1")
+    assert (pair.source, pair.target) == ("s1", "t1")
+
+
+def test_nearest_candidate_wins_and_older_ones_are_dropped():
+    s = PairSync(slop=0.05, queue_size=10)
+    for i, t in enumerate((100, 120, 140)):
+        s.add_target(t * MS, f"t{i}")
+    pair, drops = s.add_source(138 * MS, "s")
+    assert pair.target == "t2"
+    assert sorted(d.stamp for d in drops) == [100 * MS, 120 * MS]
+    assert {d.reason for d in drops} == {"unmatched"} and s.drops["unmatched"] == 2
+
+
+def test_stamps_beyond_slop_are_dropped_once_the_other_topic_moves_on():
+    s = PairSync(slop=0.05, queue_size=5)
+    assert s.add_source(1000 * MS, "s") == (None, [])
+    pair, drops = s.add_target(2000 * MS, "t")  # 1 s later: the source can never be paired
+    assert pair is None
+    assert [(d.topic, d.stamp, d.reason) for d in drops] == [("source", 1000 * MS, "unmatched")]
+    # The next good pair still works; the lone target is dropped when sources move past it.
+    assert s.add_source(3000 * MS, "s2")[0] is None
+    pair, drops = s.add_target(3000 * MS, "t2")
+    assert (pair.source, pair.target) == ("s2", "t2")
+    assert s.drops == {"unmatched": 2}
+
+
+def test_queue_is_bounded_and_evictions_are_counted():
+    s = PairSync(slop=0.001, queue_size=3)
+    dropped = []
+    for i in range(10):  # sources only: nothing to pair with
+        dropped += s.add_source(i * 100 * MS, i)[1]
+    assert len(s) == 3
+    assert [d.stamp for d in dropped] == [i * 100 * MS for i in range(7)]
+    assert s.drops == {"queue_full": 7}
+
+
+def test_latest_target_mode():
+    s = PairSync(slop=0.0, queue_size=1, mode="latest_target")
+    pair, drops = s.add_source(1 * MS, "s0")
+    assert pair is None and [d.reason for d in drops] == ["no_target"]
+    s.add_target(5 * MS, "ref1")
+    assert s.add_source(900 * MS, "s1")[0].target == "ref1"  # far in time: slop does not apply
+    assert s.add_source(901 * MS, "s2")[0].target == "ref1"  # the reference is reused
+    s.add_target(10 * MS, "ref2")
+    assert s.add_source(902 * MS, "s3")[0].target == "ref2"
+    assert s.drops == {"no_target": 1} and len(s) == 1
+
+
+def test_invalid_settings():
+    with pytest.raises(ValueError):
+        PairSync(0.1, 5, mode="exact")
+    with pytest.raises(ValueError):
+        PairSync(-0.1, 5)
+    with pytest.raises(ValueError):
+        PairSync(0.1, 0)
+
+
+@pytest.mark.parametrize("seed", range(5))
+def test_random_streams_pair_correctly_and_account_for_every_message(seed):
+    """10 Hz source and target with stamp jitter, 10 % losses and delivery delays that interleave the topics."""
+    rng = np.random.default_rng(seed)
+    slop, qsize = 0.02, 4
+    s = PairSync(slop=slop, queue_size=qsize)
+    arrivals = []  # (arrival time, topic, stamp, tick)
+    for topic in ("source", "target"):
+        for k in range(300):
+            if rng.uniform() < 0.9:
+                stamp = k * 100 * MS + int(rng.normal(0, 3 * MS))
+                arrivals.append((stamp + int(rng.uniform(0, 40 * MS)), topic, stamp, k))
+    arrivals.sort()
+    pairs, dropped = [], 0
+    for _, topic, stamp, k in arrivals:
+        add = s.add_source if topic == "source" else s.add_target
+        pair, drops = add(stamp, (topic, k))
+        dropped += len(drops)
+        assert len(s) <= 2 * qsize
+        if pair:
+            pairs.append(pair)
+            assert abs(pair.source_stamp - pair.target_stamp) <= slop * 1e9
+            assert pair.source[0] == "source" and pair.target[0] == "target"
+    used = [p.source for p in pairs] + [p.target for p in pairs]
+    assert len(used) == len(set(used))  # no message is used twice
+    assert 2 * len(pairs) + dropped + len(s) == len(arrivals)  # every message is paired, dropped or held
+    both = {k for _, t, _, k in arrivals if t == "source"} & {k for _, t, _, k in arrivals if t == "target"}
+    assert all(p.source[1] == p.target[1] for p in pairs)  # each with its own partner
+    assert len(pairs) >= 0.9 * len(both)  # and nearly every tick with both messages is paired
+
+
+def test_latest_slot_replaces_waiting_item():
+    slot = LatestSlot()
+    assert slot.put("a") is None
+    assert slot.put("b") == "a"
+    assert slot.take(timeout=0.1) == "b"
+    t0 = time.monotonic()
+    assert slot.take(timeout=0.1) is None
+    assert time.monotonic() - t0 >= 0.09
+
+
+def test_latest_slot_wakes_worker_and_close_unblocks():
+    slot, got = LatestSlot(), []
+
+    def worker():
+        while not slot.closed:
+            item = slot.take(timeout=5.0)
+            if item is not None:
+                got.append(item)
+
+    th = threading.Thread(target=worker)
+    th.start()
+    slot.put(1)
+    deadline = time.monotonic() + 2
+    while not got and time.monotonic() < deadline:
+        time.sleep(0.01)
+    slot.close()
+    th.join(timeout=2)
+    assert got == [1] and not th.is_alive()
