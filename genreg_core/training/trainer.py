@@ -254,9 +254,9 @@ class Trainer:
             bar.update(1)
             bar.set_postfix({k: f"{running[k]:.3g}" for k in ("loss", "transformation", "discriminator") if k in running})
             it = self.iteration
-            if it % cfg.validate_every == 0 or it == end:
+            if self.is_main and (it % cfg.validate_every == 0 or it == end):
                 val = self.validate()
-                if self.is_main and val["val_re_mean"] < self.best_re:
+                if val["val_re_mean"] < self.best_re:
                     self.best_re = val["val_re_mean"]
                     save_checkpoint(self.generator, self.out_dir / "best.pt", self._meta())
                 bar.write(f"iteration {it}: " + ", ".join(f"{k} {v:.4g}" for k, v in val.items()))
@@ -269,7 +269,7 @@ class Trainer:
                 self.save()
                 break
         bar.close()
-        return val or self.validate()
+        return val or (self.validate() if self.is_main else {})
 
     def _log(self, running: dict[str, float], val: dict[str, float]) -> None:
         if not self.is_main:

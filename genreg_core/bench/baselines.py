@@ -1,0 +1,192 @@
+"""Classical registration baselines (Open3D, small_gicp), configured as a skilled user would.
+
+Every method is a plain function `(source, target, params) -> (T, seconds)`:
+- source (N, 3) and target (M, 3) arrays in any units (unit box for objects, metres for scenes);
+- T is the 4x4 float64 target_from_source transform, column convention x_t = R x_s + t;
+- seconds is the wall time of the whole method, preprocessing (downsampling, normals, FPFH) included.
+All lengths live in `BaselineParams` in the clouds' units: `BaselineParams.unit_box()` for clouds in the
+unit box [0, 1]^3 and `BaselineParams.metric_scene()` for RGB-D frames in metres; `scaled(extent)` turns
+the unit-box settings into an equivalent for a cloud whose bounding box is `extent` wide.
+Threads: Open3D follows OMP_NUM_THREADS (set it before import); small_gicp takes `params.threads`.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+import open3d as o3d
+import small_gicp
+
+reg = o3d.pipelines.registration
+
+
+@dataclass(frozen=True)
+class BaselineParams:
+    """Lengths in the clouds' units. Radii follow the usual multiples of the voxel size."""
+
+    voxel_size: float = 0.02  # FPFH downsampling voxel (0 or less: no downsampling)
+    icp_max_distance: float = 0.5  # ICP from identity: correspondence cut-off
+    icp_max_iterations: int = 50
+    icp_voxel_size: float = 0.0  # ICP/GICP downsampling voxel (0: use the points as given)
+    normal_radius_factor: float = 2.0  # normal radius = factor * feature voxel
+    fpfh_radius_factor: float = 5.0  # FPFH radius = factor * feature voxel
+    ransac_distance_factor: float = 1.5  # RANSAC inlier distance = factor * feature voxel
+    ransac_max_iterations: int = 100_000
+    ransac_confidence: float = 0.999
+    fgr_distance_factor: float = 0.5  # FGR correspondence distance = factor * feature voxel
+    refine_distance_factor: float = 1.0  # ICP after RANSAC: cut-off = factor * feature voxel
+    gicp_max_distance: float = 0.5  # small_gicp correspondence cut-off
+    threads: int = 2  # small_gicp worker threads
+    seed: int = 0  # Open3D RANSAC seed
+
+    @classmethod
+    def unit_box(cls, threads: int = 2) -> BaselineParams:
+        """Objects normalised into the unit box (ModelNet40, FMR-style pairs), 512-2048 points."""
+        return cls(threads=threads)
+
+    @classmethod
+    def metric_scene(cls, threads: int = 2) -> BaselineParams:
+        """RGB-D frames in metres (~300k points, 1-7 m deep), small motions between frames."""
+        return cls(
+            voxel_size=0.05, icp_max_distance=0.1, icp_voxel_size=0.02, gicp_max_distance=0.1,
+            threads=threads,
+        )
+
+    def scaled(self, extent: float) -> BaselineParams:
+        """These settings with every length multiplied by `extent` (the unit box is 1 wide)."""
+        lengths = ("voxel_size", "icp_max_distance", "icp_voxel_size", "gicp_max_distance")
+        return dataclasses.replace(self, **{k: getattr(self, k) * extent for k in lengths})
+
+    @property
+    def normal_radius(self) -> float:
+        return self.normal_radius_factor * self.voxel_size
+
+    @property
+    def fpfh_radius(self) -> float:
+        return self.fpfh_radius_factor * self.voxel_size
+
+
+BaselineFn = Callable[[np.ndarray, np.ndarray, BaselineParams], tuple[np.ndarray, float]]
+
+
+def to_o3d(points: np.ndarray) -> o3d.geometry.PointCloud:
+    return o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.asarray(points, dtype=np.float64)))
+
+
+def _downsample(cloud: o3d.geometry.PointCloud, voxel: float) -> o3d.geometry.PointCloud:
+    return cloud.voxel_down_sample(voxel) if voxel > 0 else cloud
+
+
+def _with_normals(cloud: o3d.geometry.PointCloud, radius: float) -> o3d.geometry.PointCloud:
+    cloud.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=radius, max_nn=30))
+    return cloud
+
+
+def _icp(
+    source: o3d.geometry.PointCloud, target: o3d.geometry.PointCloud, init: np.ndarray,
+    max_distance: float, iterations: int, point_to_plane: bool = False,
+) -> np.ndarray:
+    estimation = reg.TransformationEstimationPointToPlane() if point_to_plane else \
+        reg.TransformationEstimationPointToPoint()
+    result = reg.registration_icp(
+        source, target, max_distance, init, estimation, reg.ICPConvergenceCriteria(max_iteration=iterations)
+    )
+    return np.asarray(result.transformation).copy()
+
+
+def _fpfh(
+    points: np.ndarray, p: BaselineParams
+) -> tuple[o3d.geometry.PointCloud, o3d.pipelines.registration.Feature]:
+    cloud = _with_normals(_downsample(to_o3d(points), p.voxel_size), p.normal_radius)
+    feature = reg.compute_fpfh_feature(cloud, o3d.geometry.KDTreeSearchParamHybrid(radius=p.fpfh_radius, max_nn=100))
+    return cloud, feature
+
+
+def _ransac(source: np.ndarray, target: np.ndarray, p: BaselineParams) -> np.ndarray:
+    src, src_f = _fpfh(source, p)
+    tgt, tgt_f = _fpfh(target, p)
+    distance = p.ransac_distance_factor * p.voxel_size
+    o3d.utility.random.seed(p.seed)
+    result = reg.registration_ransac_based_on_feature_matching(
+        src, tgt, src_f, tgt_f, True, distance, reg.TransformationEstimationPointToPoint(False), 3,
+        [reg.CorrespondenceCheckerBasedOnEdgeLength(0.9), reg.CorrespondenceCheckerBasedOnDistance(distance)],
+        reg.RANSACConvergenceCriteria(p.ransac_max_iterations, p.ransac_confidence),
+    )
+    return np.asarray(result.transformation).copy()
+
+
+def icp_point_to_point(source: np.ndarray, target: np.ndarray, p: BaselineParams) -> tuple[np.ndarray, float]:
+    """Open3D point-to-point ICP from identity, cut-off `icp_max_distance`."""
+    t0 = time.perf_counter()
+    src, tgt = _downsample(to_o3d(source), p.icp_voxel_size), _downsample(to_o3d(target), p.icp_voxel_size)
+    T = _icp(src, tgt, np.eye(4), p.icp_max_distance, p.icp_max_iterations)
+    return T, time.perf_counter() - t0
+
+
+def icp_point_to_plane(source: np.ndarray, target: np.ndarray, p: BaselineParams) -> tuple[np.ndarray, float]:
+    """Open3D point-to-plane ICP from identity; target normals from a radius search (normal_radius)."""
+    t0 = time.perf_counter()
+    src = _downsample(to_o3d(source), p.icp_voxel_size)
+    tgt = _with_normals(_downsample(to_o3d(target), p.icp_voxel_size), p.normal_radius)
+    T = _icp(src, tgt, np.eye(4), p.icp_max_distance, p.icp_max_iterations, point_to_plane=True)
+    return T, time.perf_counter() - t0
+
+
+def fpfh_fgr(source: np.ndarray, target: np.ndarray, p: BaselineParams) -> tuple[np.ndarray, float]:
+    """FPFH features on voxel-downsampled clouds, then Open3D Fast Global Registration (absolute scale)."""
+    t0 = time.perf_counter()
+    src, src_f = _fpfh(source, p)
+    tgt, tgt_f = _fpfh(target, p)
+    option = reg.FastGlobalRegistrationOption(
+        use_absolute_scale=True, maximum_correspondence_distance=p.fgr_distance_factor * p.voxel_size
+    )
+    result = reg.registration_fgr_based_on_feature_matching(src, tgt, src_f, tgt_f, option)
+    return np.asarray(result.transformation).copy(), time.perf_counter() - t0
+
+
+def fpfh_ransac(source: np.ndarray, target: np.ndarray, p: BaselineParams) -> tuple[np.ndarray, float]:
+    """FPFH + Open3D RANSAC (mutual filter, 3-point samples, edge-length and distance checkers)."""
+    t0 = time.perf_counter()
+    T = _ransac(source, target, p)
+    return T, time.perf_counter() - t0
+
+
+def fpfh_ransac_icp(source: np.ndarray, target: np.ndarray, p: BaselineParams) -> tuple[np.ndarray, float]:
+    """FPFH + RANSAC, then point-to-point ICP on the ICP-resolution clouds (cut-off refine factor * voxel)."""
+    t0 = time.perf_counter()
+    T0 = _ransac(source, target, p)
+    src, tgt = _downsample(to_o3d(source), p.icp_voxel_size), _downsample(to_o3d(target), p.icp_voxel_size)
+    T = _icp(src, tgt, T0, p.refine_distance_factor * p.voxel_size, p.icp_max_iterations)
+    return T, time.perf_counter() - t0
+
+
+def small_gicp_gicp(source: np.ndarray, target: np.ndarray, p: BaselineParams) -> tuple[np.ndarray, float]:
+    """small_gicp GICP from identity (its own voxel downsampling, covariances from 10 neighbours)."""
+    t0 = time.perf_counter()
+    downsampling = p.icp_voxel_size if p.icp_voxel_size > 0 else 0.25 * p.voxel_size
+    result = small_gicp.align(
+        np.asarray(target, dtype=np.float64), np.asarray(source, dtype=np.float64),
+        registration_type="GICP", downsampling_resolution=downsampling,
+        max_correspondence_distance=p.gicp_max_distance, num_threads=p.threads,
+        max_iterations=p.icp_max_iterations,
+    )
+    return np.asarray(result.T_target_source).copy(), time.perf_counter() - t0
+
+
+def identity(source: np.ndarray, target: np.ndarray, p: BaselineParams) -> tuple[np.ndarray, float]:
+    """No registration: the error of doing nothing (the motion in the pair)."""
+    return np.eye(4), 0.0
+
+
+BASELINES: dict[str, BaselineFn] = {
+    "icp-p2p": icp_point_to_point,
+    "icp-p2plane": icp_point_to_plane,
+    "fpfh+fgr": fpfh_fgr,
+    "fpfh+ransac": fpfh_ransac,
+    "fpfh+ransac+icp": fpfh_ransac_icp,
+    "small_gicp": small_gicp_gicp,
+}
