@@ -1,6 +1,7 @@
 """Training: losses against exact references, learning, determinism, exact resume, DDP (gloo)."""
 
 import os
+import signal
 import socket
 import subprocess
 import sys
@@ -104,12 +105,17 @@ def test_torchrun_two_cpu_processes_with_gloo(tmp_path):
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
         port = str(s.getsockname()[1])
-    proc = subprocess.run(
-        [sys.executable, "-m", "torch.distributed.run", "--nproc_per_node", "2",
-         "--master_addr", "127.0.0.1", "--master_port", port,
-         "-m", "genreg_core.training.cli", "--config", str(cfg), "--max-iterations", "3", "--no-progress"],
-        capture_output=True, text=True, timeout=120, env=env, cwd=REPO, check=False,
-    )
+    cmd = [sys.executable, "-m", "torch.distributed.run", "--nproc_per_node", "2", "--master_addr", "127.0.0.1",
+           "--master_port", port, "-m", "genreg_core.training.cli", "--config", str(cfg),
+           "--max-iterations", "3", "--no-progress"]
+    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env, cwd=REPO,
+                            start_new_session=True)
+    try:
+        _, stderr = proc.communicate(timeout=150)
+    except subprocess.TimeoutExpired:
+        os.killpg(proc.pid, signal.SIGKILL)  # torchrun's workers too
+        raise
+    proc.stderr = stderr
     assert proc.returncode == 0, proc.stderr[-2000:]
     state = torch.load(tmp_path / "ddp" / "last.ckpt", weights_only=True)
     assert state["iteration"] == 3
