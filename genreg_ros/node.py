@@ -88,6 +88,7 @@ class Stats:
         self.dropped: Counter[str] = Counter()
         self.failed: Counter[str] = Counter()
         self.registered = 0
+        self.paired = 0  # pairs formed by the sync; each is registered, failed, dropped or superseded
         self.last_arrival: dict[str, float | None] = {SOURCE: None, TARGET: None}
         self.latency = deque(maxlen=100)  # s, arrival of the pair's later cloud -> published
         self.overhead = deque(maxlen=100)  # s, node work besides preprocessing and registration
@@ -162,8 +163,11 @@ def registration_config(values: dict[str, Any]) -> RegistrationConfig:
             method=values["refine.method"],
             max_iterations=values["refine.max_iterations"],
             max_correspondence_distance=values["refine.max_correspondence_distance"],
+            num_points=values["refine.num_points"],
         ),
-        seed=None if values["seed"] < 0 else values["seed"],
+        passes=values["registration.passes"],
+        min_points=values["registration.min_points"],
+        seed=None if values["registration.seed"] < 0 else values["registration.seed"],
         device=values["model.device"],
     )
 
@@ -302,8 +306,11 @@ class RegisterNode(Node):
                 other = TARGET if d.topic == SOURCE else SOURCE
                 text = _DROP_TEXT.get(d.reason, d.reason).format(other=other, slop=slop)
                 self._drop(d.reason, f"{d.topic} cloud stamped {d.stamp / 1e9:.3f} s dropped: {text}")
-            if pair is not None and self._slot.put(pair) is not None:
-                self._drop("superseded", f"pair dropped: {_DROP_TEXT['superseded']}")
+            if pair is not None:
+                with self._stats.lock:
+                    self._stats.paired += 1
+                if self._slot.put(pair) is not None:
+                    self._drop("superseded", f"pair dropped: {_DROP_TEXT['superseded']}")
         except Exception as exc:  # noqa: BLE001 (one bad message must never stop the node)
             self._drop("internal_error", f"{topic} cloud: unexpected {type(exc).__name__}: {exc}")
 
@@ -418,7 +425,7 @@ class RegisterNode(Node):
         now = time.monotonic()
         with s.lock:
             dropped, failed, received = Counter(s.dropped), Counter(s.failed), Counter(s.received)
-            registered, last, outcome = s.registered, dict(s.last), s.last_outcome
+            registered, paired, last, outcome = s.registered, s.paired, dict(s.last), s.last_outcome
             arrivals = dict(s.last_arrival)
             latency = list(s.latency)
             overhead = list(s.overhead)
@@ -444,6 +451,7 @@ class RegisterNode(Node):
             "failed": sum(failed.values()),
             "received.source": received[SOURCE],
             "received.target": received[TARGET],
+            "paired": paired,
             "latency_ms.last": 1e3 * latency[-1] if latency else float("nan"),
             "latency_ms.median": 1e3 * float(np.median(latency)) if latency else float("nan"),
             "overhead_ms.median": 1e3 * float(np.median(overhead)) if overhead else float("nan"),

@@ -22,6 +22,9 @@ def ros_env() -> dict[str, str]:
         "ROS_AUTOMATIC_DISCOVERY_RANGE": "LOCALHOST",
         "ROS_DOMAIN_ID": str(1 + secrets.randbelow(100)),  # 1..100: valid Fast DDS ports on Linux
         "RCUTILS_COLORIZED_OUTPUT": "0",
+        # The shipped large-cloud profile, as users are told to run it (read when the first DDS
+        # participant of a process is created).
+        "FASTDDS_DEFAULT_PROFILES_FILE": str(FASTDDS_PROFILE),
     }
     saved = {k: os.environ.get(k) for k in env}
     os.environ.update(env)

@@ -1,0 +1,549 @@
+"""register_node over real rclpy and DDS (loopback): in-process and cross-process.
+
+Truth is independent of the node: clouds are sampled from a known asymmetric scene, the target is moved
+by a known transform, and the outputs are compared with that transform and with the input bytes. The
+model is an untrained N=256 checkpoint, so accuracy comes from the ICP refinement (small transforms) or
+from an initial guess near the truth; a node that inverted, ignored or mis-framed anything would fail.
+"""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+import threading
+import time
+from contextlib import contextmanager
+
+import numpy as np
+import pytest
+import rclpy
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
+from geometry_msgs.msg import TransformStamped
+from rclpy.executors import SingleThreadedExecutor
+from rclpy.parameter import Parameter
+from rclpy.qos import QoSProfile, ReliabilityPolicy
+from scipy.spatial.transform import Rotation
+from sensor_msgs.msg import PointCloud2, PointField
+from std_msgs.msg import Header
+
+from genreg_ros.node import RegisterNode, StartupError, msg_to_matrix
+from genreg_ros.pointcloud2 import array_to_msg, read_points
+
+SRC_FRAME, TGT_FRAME = "lidar", "map"
+CLOUD_DTYPE = np.dtype({
+    "names": ["x", "y", "z", "intensity", "ring", "rgb"],
+    "formats": ["<f4", "<f4", "<f4", "<f4", "<u2", "<u4"],
+    "offsets": [0, 4, 8, 16, 20, 24],
+    "itemsize": 32,
+})
+TEST_PARAMS = {  # fast settings for 2 shared cores
+    "pdsac.num_hypotheses": 64,
+    "refine.max_iterations": 30,
+    "refine.num_points": 2000,
+    "model.num_threads": 1,
+    "diagnostics.period": 0.2,
+}
+
+
+def transform(rot_deg, trans) -> np.ndarray:
+    T = np.eye(4)
+    T[:3, :3] = Rotation.from_euler("xyz", rot_deg, degrees=True).as_matrix()
+    T[:3, 3] = trans
+    return T
+
+
+SMALL_T = transform([1, -2, 3], [0.12, -0.08, 0.05])  # ICP alone recovers it from the identity
+BIG_T = transform([5, -10, 25], [0.4, -0.3, 0.1])  # needs an initial guess
+GUESS_ERROR = transform([2, 0, 3], [0.06, -0.05, 0.03])
+
+
+def apply(T, p):
+    return p @ T[:3, :3].T + T[:3, 3]
+
+
+def errors(T_est, T_true) -> tuple[float, float]:
+    E = np.linalg.inv(T_true) @ T_est
+    return float(np.degrees(Rotation.from_matrix(E[:3, :3]).magnitude())), float(np.linalg.norm(E[:3, 3]))
+
+
+def surface(rng, n) -> np.ndarray:
+    """Points on an asymmetric room corner (metres): floor 4 x 3, two 2.5 m walls, a box off-centre."""
+    areas = np.array([12.0, 10.0, 7.5, 1.5])
+    k = rng.choice(4, n, p=areas / areas.sum())
+    u, v, z = rng.uniform(size=n), rng.uniform(size=n), np.zeros(n)
+    faces = [np.c_[4 * u, 3 * v, z], np.c_[4 * u, z, 2.5 * v], np.c_[z, 3 * u, 2.5 * v],
+             np.c_[2.5 + 0.6 * u, 1.8 + 0.4 * v, z + 0.6]]
+    return np.select([(k == i)[:, None] for i in range(4)], faces)
+
+
+def stamp(t: float) -> Header:
+    h = Header()
+    h.stamp.sec, h.stamp.nanosec = int(t), round((t - int(t)) * 1e9)
+    return h
+
+
+def make_pair(T, t, seed=0, n=3000, nan_every=0, src_frame=SRC_FRAME, tgt_frame=TGT_FRAME, dt=0.01):
+    """(source msg, target msg, source records): target = T applied to another sampling of the scene."""
+    rng = np.random.default_rng(seed)
+    src = np.zeros(n, CLOUD_DTYPE)
+    pts = surface(rng, n)
+    src["x"], src["y"], src["z"] = pts.T
+    src["intensity"] = rng.uniform(0, 100, n)
+    src["ring"] = np.arange(n) % 64
+    src["rgb"] = rng.integers(0, 2**24, n)
+    if nan_every:
+        src["x"][::nan_every] = np.nan
+    tgt = np.zeros(n, CLOUD_DTYPE)
+    tgt_pts = apply(T, surface(rng, n) + rng.normal(scale=0.002, size=(n, 3)))
+    tgt["x"], tgt["y"], tgt["z"] = tgt_pts.T
+    hs, ht = stamp(t), stamp(t + dt)
+    hs.frame_id, ht.frame_id = src_frame, tgt_frame
+    return array_to_msg(hs, src), array_to_msg(ht, tgt), src
+
+
+def guess_param(T) -> list[float]:
+    q = Rotation.from_matrix(T[:3, :3]).as_quat()
+    return [*map(float, T[:3, 3]), *map(float, q)]
+
+
+def diag_values(status: DiagnosticStatus) -> dict[str, str]:
+    return {kv.key: kv.value for kv in status.values}
+
+
+class Harness:
+    """The node plus a helper node (publishers, recorders) in one rclpy context, spun in a thread."""
+
+    def __init__(self, ctx, namespace: str, node: RegisterNode | None, pub_reliability=ReliabilityPolicy.RELIABLE):
+        """`node` None: the node runs in another process as <namespace>/register_node."""
+        self.ctx, self.node, self.lock = ctx, node, threading.Lock()
+        self.helper = rclpy.create_node("genreg_test_helper", namespace=namespace, context=ctx)
+        qos = QoSProfile(depth=10, reliability=pub_reliability)
+        self.pub_source = self.helper.create_publisher(PointCloud2, "source_cloud", qos)
+        self.pub_target = self.helper.create_publisher(PointCloud2, "target_cloud", qos)
+        self.pub_guess = self.helper.create_publisher(TransformStamped, "initial_guess", 1)
+        self.aligned: list[PointCloud2] = []
+        self.transforms: list[TransformStamped] = []
+        self.generated: list[PointCloud2] = []
+        self.diagnostics: list[DiagnosticArray] = []
+        self.fqn = node.get_fully_qualified_name() if node else f"{namespace}/register_node"
+        self.helper.create_subscription(PointCloud2, "aligned_cloud", self._rec(self.aligned), 10)
+        self.helper.create_subscription(TransformStamped, "transform", self._rec(self.transforms), 10)
+        self.helper.create_subscription(PointCloud2, "generated_cloud", self._rec(self.generated), 10)
+        self.helper.create_subscription(DiagnosticArray, "/diagnostics", self._on_diag, 10)
+        self.executor = SingleThreadedExecutor(context=ctx)
+        for n in (node, self.helper):
+            if n is not None:
+                self.executor.add_node(n)
+        self.thread = threading.Thread(target=self.executor.spin, daemon=True)
+        self.thread.start()
+
+    def _rec(self, sink):
+        def cb(msg):
+            with self.lock:
+                sink.append(msg)
+        return cb
+
+    def _on_diag(self, msg: DiagnosticArray):
+        if any(s.hardware_id == self.fqn for s in msg.status):
+            with self.lock:
+                self.diagnostics.append(msg)
+
+    def send(self, source, target):
+        self.pub_source.publish(source)
+        self.pub_target.publish(target)
+
+    def wait(self, predicate, timeout=10.0, what="condition"):
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            with self.lock:
+                if predicate():
+                    return
+            time.sleep(0.02)
+        raise AssertionError(f"timed out waiting for {what}")
+
+    def wait_output(self, source_stamp: Header, timeout=10.0) -> tuple[PointCloud2, TransformStamped]:
+        """The aligned cloud and transform published for the source with this stamp."""
+        key = (source_stamp.stamp.sec, source_stamp.stamp.nanosec)
+        find = lambda msgs: [m for m in msgs if (m.header.stamp.sec, m.header.stamp.nanosec) == key]
+        self.wait(lambda: find(self.aligned) and find(self.transforms), timeout, f"outputs stamped {key}")
+        with self.lock:
+            return find(self.aligned)[-1], find(self.transforms)[-1]
+
+    def status(self, after: float | None = None) -> DiagnosticStatus:
+        """The newest diagnostics status of the node (received after `after`, time.monotonic, if given)."""
+        n0 = len(self.diagnostics)
+        if after is not None:
+            self.wait(lambda: len(self.diagnostics) > n0, 5.0, "diagnostics")
+        else:
+            self.wait(lambda: self.diagnostics, 5.0, "diagnostics")
+        with self.lock:
+            return next(s for s in self.diagnostics[-1].status if s.hardware_id == self.fqn)
+
+    def counters(self) -> dict[str, str]:
+        return diag_values(self.status(after=time.monotonic()))
+
+    def close(self):
+        self.executor.shutdown(timeout_sec=2.0)
+        self.thread.join(timeout=5.0)
+        if self.node is not None:
+            self.node.close()
+        self.helper.destroy_node()
+
+
+@contextmanager
+def running_node(namespace: str, checkpoint, pub_reliability=ReliabilityPolicy.RELIABLE, **params):
+    ctx = rclpy.Context()
+    rclpy.init(context=ctx)
+    values = {**TEST_PARAMS, "model.checkpoint": str(checkpoint), **params}
+    overrides = [Parameter(k, value=v) for k, v in values.items()]
+    node = RegisterNode(context=ctx, namespace=namespace, parameter_overrides=overrides)
+    h = Harness(ctx, namespace, node, pub_reliability)
+    try:
+        time.sleep(0.2)  # endpoint matching inside the participant
+        yield h
+    finally:
+        h.close()
+        rclpy.shutdown(context=ctx)
+
+
+@pytest.fixture
+def ns(ros_namespace, request) -> str:
+    return f"{ros_namespace}/{request.node.name.split('[')[0][5:]}"
+
+
+def check_outputs(aligned, tf, src_records, src_header, T_true, src_frame=SRC_FRAME, tgt_frame=TGT_FRAME,
+                  rot_tol=1.0, trans_tol=0.035):
+    """Frames, stamps, accuracy against T_true, and the source's other fields carried in order."""
+    assert tf.header.frame_id == tgt_frame and tf.child_frame_id == src_frame
+    assert aligned.header.frame_id == tgt_frame
+    assert tf.header.stamp == src_header.stamp and aligned.header.stamp == src_header.stamp
+    T_est = msg_to_matrix(tf)
+    rot_err, trans_err = errors(T_est, T_true)
+    assert rot_err < rot_tol and trans_err < trans_tol, (rot_err, trans_err)
+    finite = np.isfinite(src_records["x"])
+    kept = src_records[finite]
+    out = read_points(aligned)
+    assert out.num_input == len(kept) and out.mask is None
+    src_xyz = np.c_[kept["x"], kept["y"], kept["z"]].astype(np.float64)
+    np.testing.assert_allclose(out.points, apply(T_est, src_xyz), atol=2e-4)  # the cloud matches the transform
+    assert np.abs(out.points - apply(T_true, src_xyz)).mean() < 0.03  # and the truth
+    rec = out.records.view(CLOUD_DTYPE).reshape(-1)
+    np.testing.assert_array_equal(rec["intensity"], kept["intensity"])
+    np.testing.assert_array_equal(rec["ring"], kept["ring"])
+    np.testing.assert_array_equal(rec["rgb"], kept["rgb"])
+    assert [(f.name, f.offset, f.datatype) for f in aligned.fields] == [
+        ("x", 0, PointField.FLOAT32), ("y", 4, PointField.FLOAT32), ("z", 8, PointField.FLOAT32),
+        ("intensity", 16, PointField.FLOAT32), ("ring", 20, PointField.UINT16), ("rgb", 24, PointField.UINT32)]
+
+
+# --------------------------------------------------------------------------- in-process
+def test_registers_a_pair_in_process(ns, untrained_checkpoint):
+    with running_node(ns, untrained_checkpoint, publish_generated=True) as h:
+        src, tgt, rec = make_pair(SMALL_T, 100.0, nan_every=10)
+        h.send(src, tgt)
+        aligned, tf = h.wait_output(src.header)
+        check_outputs(aligned, tf, rec, src.header, SMALL_T)
+        h.wait(lambda: h.generated, 5.0, "generated cloud")
+        assert h.generated[0].header.frame_id == TGT_FRAME and h.generated[0].width == 256
+        v = h.counters()
+        assert v["registered"] == "1" and v["dropped"] == "0" and v["failed"] == "0"
+        assert float(v["latency_ms.last"]) > 0 and 0.0 <= float(v["last.fitness"]) <= 1.0
+
+
+def test_initial_guess_parameter_then_topic(ns, untrained_checkpoint):
+    with running_node(ns, untrained_checkpoint, initial_guess=guess_param(BIG_T @ GUESS_ERROR)) as h:
+        src, tgt, rec = make_pair(BIG_T, 200.0, seed=1)
+        h.send(src, tgt)
+        check_outputs(*h.wait_output(src.header), rec, src.header, BIG_T)
+        # The topic overrides the parameter: a different big transform, guessed on the topic only.
+        other = transform([-20, 5, -8], [-0.5, 0.2, 0.3])
+        guess = TransformStamped(header=Header(frame_id=TGT_FRAME), child_frame_id=SRC_FRAME)
+        g = other @ GUESS_ERROR
+        guess.transform.translation.x, guess.transform.translation.y, guess.transform.translation.z = g[:3, 3]
+        q = Rotation.from_matrix(g[:3, :3]).as_quat()
+        r = guess.transform.rotation
+        r.x, r.y, r.z, r.w = map(float, q)
+        h.pub_guess.publish(guess)
+        time.sleep(0.2)
+        src, tgt, rec = make_pair(other, 201.0, seed=2)
+        h.send(src, tgt)
+        check_outputs(*h.wait_output(src.header), rec, src.header, other)
+
+
+def test_frame_parameters_override_header_frames(ns, untrained_checkpoint):
+    with running_node(ns, untrained_checkpoint) as h:
+        result = h.node.set_parameters([Parameter("source_frame", value="velodyne"),
+                                        Parameter("target_frame", value="odom")])
+        assert all(r.successful for r in result)
+        src, tgt, rec = make_pair(SMALL_T, 300.0, src_frame="", tgt_frame="something_else")
+        h.send(src, tgt)
+        check_outputs(*h.wait_output(src.header), rec, src.header, SMALL_T, src_frame="velodyne", tgt_frame="odom")
+
+
+def bad_cloud(kind: str, t: float):
+    """A source cloud that must be dropped, and the drop reason the node must count."""
+    src, tgt, _ = make_pair(SMALL_T, t)
+    if kind == "empty":
+        return array_to_msg(src.header, np.zeros(0, CLOUD_DTYPE)), tgt, "empty_cloud"
+    if kind == "no_xyz":
+        src.fields = [f for f in src.fields if f.name not in ("x", "y", "z")]
+        return src, tgt, "missing_xyz"
+    if kind == "all_nan":
+        rec = np.zeros(500, CLOUD_DTYPE)
+        rec["x"] = np.nan
+        return array_to_msg(src.header, rec), tgt, "no_finite_points"
+    if kind == "beyond_slop":
+        return src, make_pair(SMALL_T, t + 0.5)[1], "unmatched"
+    if kind == "two_million":
+        rec = np.zeros(2_000_000, np.dtype({"names": ["x", "y", "z"], "formats": ["<f4"] * 3}))
+        return array_to_msg(src.header, rec), tgt, "too_many_points"
+    if kind == "empty_frame":
+        src.header.frame_id = ""
+        return src, tgt, "empty_frame_id"
+    if kind == "truncated":
+        src.data = src.data[: len(src.data) - 100]
+        return src, tgt, "truncated_data"
+    raise ValueError(kind)
+
+
+BAD_KINDS = ["empty", "no_xyz", "all_nan", "beyond_slop", "two_million", "empty_frame", "truncated"]
+
+
+def test_each_bad_input_is_warned_counted_and_the_next_pair_registers(ns, untrained_checkpoint, capfd):
+    with running_node(ns, untrained_checkpoint) as h:
+        t = 400.0
+        for kind in BAD_KINDS:
+            before = h.counters()
+            src, tgt, reason = bad_cloud(kind, t)
+            h.send(src, tgt)
+            key = f"dropped.{reason}"
+            deadline = time.monotonic() + 10
+            while int(h.counters().get(key, 0)) <= int(before.get(key, 0)):
+                assert time.monotonic() < deadline, f"{kind}: no {key} counted"
+            good_src, good_tgt, rec = make_pair(SMALL_T, t + 2.0, seed=3)
+            h.send(good_src, good_tgt)
+            check_outputs(*h.wait_output(good_src.header), rec, good_src.header, SMALL_T)
+            assert int(h.counters()["registered"]) == int(before["registered"]) + 1
+            t += 10.0
+        err = capfd.readouterr().err
+        for kind in BAD_KINDS:
+            reason = bad_cloud(kind, 0.0)[2]
+            assert f"dropped ({reason})" in err, f"no warning for {kind}"
+        assert "slop" in err and "max_points" in err and "row_step * height" in err
+
+
+def test_newer_pairs_replace_waiting_ones(ns, untrained_checkpoint):
+    with running_node(ns, untrained_checkpoint, **{"refine.num_points": 5000, "pdsac.num_hypotheses": 256}) as h:
+        pairs = [make_pair(SMALL_T, 500.0 + 0.1 * i, seed=i % 3, n=2000) for i in range(12)]
+        for src, tgt, _ in pairs:
+            h.send(src, tgt)
+            time.sleep(0.005)
+        last_src = pairs[-1][0]
+        h.wait_output(last_src.header)  # the newest pair always gets registered
+        time.sleep(0.3)
+        v = h.counters()
+        registered, superseded, paired = int(v["registered"]), int(v.get("dropped.superseded", 0)), int(v["paired"])
+        assert superseded >= 1 and registered < 12
+        assert registered + superseded == paired  # every formed pair is registered or replaced, none lost
+        assert len(h.aligned) == registered
+
+
+def test_parameter_validation_at_run_time(ns, untrained_checkpoint):
+    with running_node(ns, untrained_checkpoint) as h:
+        def rejected(name, value):
+            (res,) = h.node.set_parameters([Parameter(name, value=value)])
+            assert not res.successful
+            return res.reason
+
+        def rejected_together(**values):
+            res = h.node.set_parameters_atomically([Parameter(k.replace("__", "."), value=v) for k, v in values.items()])
+            assert not res.successful
+            return res.reason
+
+        assert "out of range" in rejected("sync.slop", -1.0)
+        assert "out of range" in rejected("pdsac.num_hypotheses", 0)
+        assert "must be one of" in rejected("refine.method", "bogus")
+        assert "must be one of" in rejected("sync.mode", "exact")
+        assert "read-only" in rejected("model.checkpoint", "7scenes")
+        assert "0 or 3 values" in rejected("preprocess.crop_min", [1.0, 2.0])
+        assert "both" in rejected("preprocess.crop_max", [1.0, 1.0, 1.0])  # crop_min is still empty
+        assert "below" in rejected_together(preprocess__crop_min=[2.0, 0.0, 0.0], preprocess__crop_max=[1.0, 1.0, 1.0])
+        assert "min_range" in rejected_together(preprocess__min_range=5.0, preprocess__max_range=1.0)
+        assert "initial_guess" in rejected("initial_guess", [0.0] * 5)
+        assert "rigid" in rejected("initial_guess", [2.0] + [0.0] * 15)
+        assert "quaternion" in rejected("initial_guess", [0.0] * 7)
+        assert h.node.get_parameter("preprocess.crop_max").value == []  # nothing rejected was applied
+        # A valid change takes effect: an 80 ms stamp gap is dropped at slop 0.05 and paired at 0.1.
+        h.send(*make_pair(SMALL_T, 600.0, dt=0.08)[:2])
+        h.send(*make_pair(SMALL_T, 601.0, dt=0.08)[:2])
+        deadline = time.monotonic() + 5
+        while int(h.counters().get("dropped.unmatched", 0)) < 2:
+            assert time.monotonic() < deadline
+        assert h.node.set_parameters([Parameter("sync.slop", value=0.1)])[0].successful
+        src, tgt, rec = make_pair(SMALL_T, 602.0, dt=0.08)
+        h.send(src, tgt)
+        check_outputs(*h.wait_output(src.header), rec, src.header, SMALL_T)
+
+
+def test_latest_target_mode_registers_each_source_against_the_reference(ns, untrained_checkpoint):
+    with running_node(ns, untrained_checkpoint, **{"sync.mode": "latest_target"}) as h:
+        src0, tgt, _ = make_pair(SMALL_T, 700.0)
+        h.pub_source.publish(src0)  # before any target: dropped
+        time.sleep(0.2)
+        h.pub_target.publish(tgt)
+        time.sleep(0.2)
+        for t in (750.0, 800.0):  # far from the target's stamp
+            src, _, rec = make_pair(SMALL_T, t)
+            h.pub_source.publish(src)
+            check_outputs(*h.wait_output(src.header), rec, src.header, SMALL_T)
+        v = h.counters()
+        assert v["registered"] == "2" and v.get("dropped.no_target") == "1"
+
+
+def test_diagnostics_warn_when_clouds_stop(ns, untrained_checkpoint):
+    with running_node(ns, untrained_checkpoint, **{"diagnostics.stale_timeout": 0.5}) as h:
+        time.sleep(0.7)
+        s = h.status(after=time.monotonic())
+        assert s.level == DiagnosticStatus.WARN and "no source cloud" in s.message
+        src, tgt, _ = make_pair(SMALL_T, 800.0)
+        h.send(src, tgt)
+        h.wait_output(src.header)
+        s = h.status(after=time.monotonic())
+        assert s.level == DiagnosticStatus.OK, s.message
+        time.sleep(0.8)
+        s = h.status(after=time.monotonic())
+        assert s.level == DiagnosticStatus.WARN and "no new source cloud" in s.message
+
+
+def test_use_sim_time(ns, untrained_checkpoint):
+    from rosgraph_msgs.msg import Clock as ClockMsg
+
+    with running_node(ns, untrained_checkpoint, use_sim_time=True) as h:
+        clock_pub = h.helper.create_publisher(ClockMsg, "/clock", 10)
+        sim = ClockMsg()
+        sim.clock.sec = 1_000_000
+        deadline = time.monotonic() + 5
+        while True:
+            clock_pub.publish(sim)
+            s_stamp = h.diagnostics[-1].header.stamp if h.diagnostics else None
+            if s_stamp is not None and s_stamp.sec == 1_000_000:
+                break
+            assert time.monotonic() < deadline, f"diagnostics not stamped with sim time: {s_stamp}"
+            time.sleep(0.1)
+        src, tgt, rec = make_pair(SMALL_T, 5.0)
+        h.send(src, tgt)
+        check_outputs(*h.wait_output(src.header), rec, src.header, SMALL_T)
+
+
+def test_missing_checkpoint_and_bad_parameters_raise_startup_error(ns, untrained_checkpoint, tmp_path):
+    ctx = rclpy.Context()
+    rclpy.init(context=ctx)
+    try:
+        cases = [
+            ({"model.checkpoint": str(tmp_path / "nope.pt")}, "checkpoint not found"),
+            ({"model.checkpoint": str(untrained_checkpoint), "model.num_points": 512}, "N=256"),
+            ({"model.checkpoint": str(untrained_checkpoint), "publish_tf": True}, "tf2_ros"),
+            ({"model.checkpoint": str(untrained_checkpoint), "sync.queue_size": 0}, "sync.queue_size"),
+            ({"model.checkpoint": str(untrained_checkpoint), "preprocess.min_range": 5.0,
+              "preprocess.max_range": 1.0}, "min_range"),
+        ]
+        for overrides, text in cases:
+            if "publish_tf" in overrides and _tf2_available():
+                continue
+            with pytest.raises(StartupError, match=text):
+                RegisterNode(context=ctx, namespace=ns,
+                             parameter_overrides=[Parameter(k, value=v) for k, v in overrides.items()])
+    finally:
+        rclpy.shutdown(context=ctx)
+
+
+def _tf2_available() -> bool:
+    try:
+        import tf2_ros  # noqa: F401
+    except ImportError:
+        return False
+    return True
+
+
+# --------------------------------------------------------------------------- cross-process
+def node_cmd(*ros_args: str) -> list[str]:
+    return [sys.executable, "-m", "genreg_ros.node", "--ros-args", *ros_args]
+
+
+def run_fails(cmd, timeout=60) -> str:
+    """Run a node command that must fail at start-up; return its single stderr error line."""
+    proc = subprocess.run(cmd, capture_output=True, text=True, timeout=timeout, check=False)
+    assert proc.returncode != 0
+    assert "Traceback" not in proc.stderr, proc.stderr
+    lines = [ln for ln in proc.stderr.splitlines() if "error" in ln.lower()]
+    assert len(lines) == 1 and lines[0].startswith("register_node: error:"), proc.stderr
+    return lines[0]
+
+
+@pytest.mark.parametrize(
+    ("content", "text"),
+    [
+        ("/**:\n  ros__parameters:\n    sync: {slop: [0.1, \n", "invalid YAML"),
+        ("/**:\n  ros__parameters:\n    sync:\n      slopp: 0.1\n", "unknown parameter 'sync.slopp'"),
+        ("/**:\n  ros__parameters:\n    sync:\n      slop: 1\n", "sync.slop must be a double (write 1.0, not 1)"),
+        ("/**:\n  ros__parameters:\n    sync:\n      queue_size: 0\n", "sync.queue_size must be in [1, 100]"),
+        ("just text\n", "expected a mapping"),
+    ],
+)
+def test_bad_params_file_gives_one_clear_error_line(tmp_path, content, text):
+    path = tmp_path / "bad.yaml"
+    path.write_text(content)
+    line = run_fails(node_cmd("--params-file", str(path)))
+    assert text in line and str(path) in line
+
+
+def test_missing_checkpoint_gives_one_clear_error_line(tmp_path, ns):
+    line = run_fails(node_cmd("-r", f"__ns:={ns}", "-p", f"model.checkpoint:={tmp_path / 'missing.pt'}"))
+    assert "checkpoint not found" in line
+
+
+@pytest.mark.parametrize("reliability", ["best_effort", "reliable"])
+def test_cross_process_large_clouds_with_both_qos_settings(ns, untrained_checkpoint, reliability, tmp_path):
+    """The node in its own process, 150k-point clouds (2.4 MB each way) over the shipped Fast DDS profile."""
+    namespace = f"{ns}_{reliability}"
+    params = {**TEST_PARAMS, "model.checkpoint": str(untrained_checkpoint), "qos.reliability": reliability}
+    args = [a for k, v in params.items() for a in ("-p", f"{k}:={v}")]
+    log = (tmp_path / "node.log").open("w+")
+    proc = subprocess.Popen(node_cmd("-r", f"__ns:={namespace}", *args), stdout=log, stderr=subprocess.STDOUT)
+    ctx = rclpy.Context()
+    rclpy.init(context=ctx)
+    pub_rel = ReliabilityPolicy.BEST_EFFORT if reliability == "best_effort" else ReliabilityPolicy.RELIABLE
+    helper = Harness(ctx, namespace, None, pub_rel)
+    try:
+        helper.wait(lambda: helper.diagnostics, 30.0, "the node's diagnostics (start-up)")
+        deadline = time.monotonic() + 10
+        while helper.pub_source.get_subscription_count() == 0 or helper.pub_target.get_subscription_count() == 0:
+            assert time.monotonic() < deadline, "node subscriptions not discovered"
+            time.sleep(0.05)
+        time.sleep(0.3)
+        sent = []
+        for i in range(3):
+            src, tgt, rec = make_pair(SMALL_T, 900.0 + i, seed=i, n=150_000, nan_every=97)
+            helper.send(src, tgt)
+            sent.append((src, rec))
+            time.sleep(1.0)
+        got = 0
+        for src, rec in sent:
+            try:
+                aligned, tf = helper.wait_output(src.header, timeout=10.0)
+            except AssertionError:
+                continue
+            check_outputs(aligned, tf, rec, src.header, SMALL_T)
+            got += 1
+        assert got == 3, f"{got} of 3 pairs registered with QoS {reliability}"
+    finally:
+        helper.close()
+        rclpy.shutdown(context=ctx)
+        proc.send_signal(2)
+        rc = proc.wait(timeout=20)
+        log.seek(0)
+        out = log.read()
+        log.close()
+    assert rc == 0, out
+    assert "XMLPARSER" not in out and "Traceback" not in out, out
+
