@@ -2,7 +2,7 @@
 
 Conventions: points are rows of an (N, 3) array in the sensor's own frame and units (metres for
 ROS data, REP-103); ranges are Euclidean distances from that frame's origin. Every step keeps only
-finite points and returns a new array; the input is never modified.
+finite points and returns a new array; the input is never modified (see `preprocess` for the no-op case).
 """
 
 from __future__ import annotations
@@ -77,8 +77,13 @@ def voxel_downsample(points: np.ndarray, voxel_size: float) -> np.ndarray:
 
 
 def preprocess(points: np.ndarray, config: PreprocessConfig) -> np.ndarray:
-    """Apply the configured filters; returns the kept (and possibly downsampled) finite points."""
+    """Apply the configured filters; returns the kept (and possibly downsampled) finite points.
+
+    With every filter off the input array itself is returned (no copy, non-finite points kept).
+    """
     pts = np.asarray(points)
+    if not (config.min_range or config.max_range or config.crop_min is not None or config.voxel_size):
+        return pts
     keep = range_mask(pts, config.min_range, config.max_range)
     if config.crop_min is not None:
         keep &= crop_mask(pts, config.crop_min, config.crop_max)

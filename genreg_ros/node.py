@@ -92,6 +92,7 @@ class Stats:
         self.last_arrival: dict[str, float | None] = {SOURCE: None, TARGET: None}
         self.latency = deque(maxlen=100)  # s, arrival of the pair's later cloud -> published
         self.overhead = deque(maxlen=100)  # s, node work besides preprocessing and registration
+        self.callback = deque(maxlen=200)  # s, one cloud subscription callback (checks + pairing)
         self.last: dict[str, float] = {}
         self.last_outcome = ""  # "", "registered" or "failed: <reason>"
 
@@ -313,6 +314,7 @@ class RegisterNode(Node):
                     self._drop("superseded", f"pair dropped: {_DROP_TEXT['superseded']}")
         except Exception as exc:  # noqa: BLE001 (one bad message must never stop the node)
             self._drop("internal_error", f"{topic} cloud: unexpected {type(exc).__name__}: {exc}")
+        self._stats.callback.append(time.monotonic() - now)
 
     def _on_guess(self, msg: TransformStamped) -> None:
         try:
@@ -429,6 +431,7 @@ class RegisterNode(Node):
             arrivals = dict(s.last_arrival)
             latency = list(s.latency)
             overhead = list(s.overhead)
+            callback = list(s.callback)
         level, notes = DiagnosticStatus.OK, []
         for topic in (SOURCE, TARGET):
             silent = now - (arrivals[topic] or s.start)
@@ -455,6 +458,7 @@ class RegisterNode(Node):
             "latency_ms.last": 1e3 * latency[-1] if latency else float("nan"),
             "latency_ms.median": 1e3 * float(np.median(latency)) if latency else float("nan"),
             "overhead_ms.median": 1e3 * float(np.median(overhead)) if overhead else float("nan"),
+            "callback_ms.median": 1e3 * float(np.median(callback)) if callback else float("nan"),
             **{f"dropped.{k}": n for k, n in sorted(dropped.items())},
             **{f"failed.{k}": n for k, n in sorted(failed.items())},
             **{f"last.{k}": x for k, x in last.items()},
