@@ -1,0 +1,581 @@
+"""genreg-replay: replay bags of RGB-D clouds through register_node and score it against ground truth.
+
+    genreg-replay --bag cache/bags/redkitchen_val --gap 1                 # starts register_node itself
+    genreg-replay --bag b1 --bag b2 --gap 5 --lockstep --report cache/replay/x
+    genreg-replay --bag b --connect --namespace /robot                    # a node that is already running
+
+Relay: cloud k of a bag is published on `<ns>/source_cloud` with its own stamp, and cloud k - gap (the
+target) on `<ns>/target_cloud` with its stamp rewritten to cloud k's, so the node's approximate-time sync
+pairs them exactly (a node started here gets sync.slop 1 ms, so a lost message can never be paired with
+a neighbour's cloud). The node answers with `transform` (T_target_source: x_target = R x_source + t) and
+`aligned_cloud`, both stamped with the source's stamp, which is how outputs are matched to pairs.
+Timing: clouds go out at their bag timing divided by `rate` (rate 0: as fast as possible); `lockstep`
+waits for each pair's output, or for the node to count it as dropped, before the next one.
+Drops: every pair without output gets a reason: a malformed bag message (found by the harness), else a
+reason the node counted on /diagnostics (superseded, failed.*, ...), else "lost".
+
+Every rclpy process needs ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST, the same ROS_DOMAIN_ID and the Fast
+DDS profile config/fastdds_large_clouds.xml; the harness sets them for itself and the node it starts.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import secrets
+import signal
+import struct
+import subprocess
+import sys
+import threading
+import time
+from collections import Counter
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import yaml
+
+from genreg_ros.bag.reader import BagData, read_bag
+from genreg_ros.replay_report import PairResult, format_summary, icp_point_to_point, summarize, write_report
+
+REPO = Path(__file__).resolve().parent.parent
+DEFAULT_PARAMS = REPO / "config" / "genreg.yaml"
+FASTDDS_PROFILE = REPO / "config" / "fastdds_large_clouds.xml"
+NODE_NAME = "register_node"
+RELAY_SLOP = 0.001  # s, sync.slop given to a node started here (the relay's pairs have equal stamps)
+# Node counters that mean "this pair produced no output", in the order they are assigned to missing pairs.
+PAIR_REASONS = ("dropped.superseded", "failed.", "dropped.unmatched", "dropped.queue_full", "dropped.")
+
+
+class ReplayError(RuntimeError):
+    """The replay cannot run (node did not start or died, no DDS match, bad bag); one-line message."""
+
+
+@dataclass
+class ReplayOptions:
+    """How to replay. Topic names are relative to `namespace`, as the node's are."""
+
+    gap: int = 1  # target = cloud k - gap, source = cloud k
+    rate: float = 1.0  # playback speed factor; 0 publishes as fast as possible
+    lockstep: bool = False  # wait for each pair's output (or counted drop) before the next
+    namespace: str = ""
+    connect: bool = False  # use a running node instead of starting one
+    params_file: Path = DEFAULT_PARAMS
+    checkpoint: str | None = None  # model.checkpoint override (None: the params file's)
+    node_params: dict[str, str] = field(default_factory=dict)  # more -p overrides, e.g. {"seed": "1"}
+    startup_timeout: float = 90.0  # s, node start + DDS discovery
+    pair_timeout: float = 30.0  # s, lockstep: longest wait for one pair
+    settle_timeout: float = 30.0  # s, after the last publish: longest wait for outputs
+    icp: bool = True  # also run Open3D ICP on the same pairs
+    report_dir: Path | None = None
+    node_log: Path | None = None  # where the started node's output goes (default: report_dir or a temp file)
+    verbose: bool = True
+
+
+@dataclass
+class ReplayResult:
+    pairs: list[PairResult]
+    summary: dict[str, Any]
+    text: str
+    report: Path | None
+
+
+# ----------------------------------------------------------------------------- environment and node process
+def ros_env(domain_id: str | None = None) -> dict[str, str]:
+    """The discovery/transport variables every rclpy process of a replay needs (set in os.environ)."""
+    env = {
+        "ROS_AUTOMATIC_DISCOVERY_RANGE": "LOCALHOST",
+        "ROS_DOMAIN_ID": domain_id or os.environ.get("ROS_DOMAIN_ID") or str(1 + secrets.randbelow(100)),
+        "FASTDDS_DEFAULT_PROFILES_FILE": os.environ.get("FASTDDS_DEFAULT_PROFILES_FILE", str(FASTDDS_PROFILE)),
+        "RCUTILS_COLORIZED_OUTPUT": "0",
+    }
+    os.environ.update(env)
+    return env
+
+
+def yaml_param(params_file: Path, name: str, default: Any = None) -> Any:
+    """A dotted parameter (e.g. 'model.checkpoint') from the first ros__parameters block of a params file."""
+    doc = yaml.safe_load(Path(params_file).read_text()) or {}
+    for entry in doc.values():
+        node = (entry or {}).get("ros__parameters", {})
+        for part in name.split("."):
+            node = node.get(part) if isinstance(node, dict) else None
+        if node is not None:
+            return node
+    return default
+
+
+class NodeProcess:
+    """register_node in a subprocess (`python -m genreg_ros.node --ros-args ...`), output to a log file."""
+
+    def __init__(self, options: ReplayOptions, log_path: Path) -> None:
+        args = ["--ros-args", "--params-file", str(options.params_file), "-p", f"sync.slop:={RELAY_SLOP}"]
+        if options.namespace.strip("/"):
+            args += ["-r", f"__ns:=/{options.namespace.strip('/')}"]
+        if options.checkpoint:
+            args += ["-p", f"model.checkpoint:={options.checkpoint}"]
+        for key, value in options.node_params.items():
+            args += ["-p", f"{key}:={value}"]
+        self.command = [sys.executable, "-m", "genreg_ros.node", *args]
+        self.log_path = log_path
+        log_path.parent.mkdir(parents=True, exist_ok=True)
+        self._log = open(log_path, "w")  # noqa: SIM115 (closed in stop())
+        env = {**os.environ, "PYTHONUNBUFFERED": "1"}
+        self.proc = subprocess.Popen(self.command, stdout=self._log, stderr=subprocess.STDOUT, env=env,
+                                     cwd=REPO, start_new_session=True)
+
+    def alive(self) -> bool:
+        return self.proc.poll() is None
+
+    def error_line(self) -> str:
+        """The node's last error line (or the last line of its log)."""
+        lines = [ln.strip() for ln in self.log_path.read_text(errors="replace").splitlines() if ln.strip()]
+        errors = [ln for ln in lines if "error" in ln.lower()]
+        return (errors or lines or [f"exit code {self.proc.returncode}, no output"])[-1]
+
+    def stop(self, timeout: float = 15.0) -> int | None:
+        """SIGINT (clean rclpy shutdown), then SIGKILL if it does not exit; returns the exit code."""
+        if self.alive():
+            self.proc.send_signal(signal.SIGINT)
+            try:
+                self.proc.wait(timeout)
+            except subprocess.TimeoutExpired:
+                self.proc.kill()
+                self.proc.wait(5)
+        self._log.close()
+        return self.proc.returncode
+
+
+# ----------------------------------------------------------------------------- rclpy side
+def restamp(raw: bytes, stamp_ns: int) -> bytes:
+    """A serialised message whose header stamp (the first field, right after the 4-byte CDR
+    encapsulation header) is replaced by stamp_ns."""
+    sec, nanosec = divmod(int(stamp_ns), 1_000_000_000)
+    order = "<" if raw[1] & 1 else ">"
+    return raw[:4] + struct.pack(order + "iI", sec, nanosec) + raw[12:]
+
+
+def _topic(namespace: str, name: str) -> str:
+    ns = namespace.strip("/")
+    return f"/{ns}/{name}" if ns else f"/{name}"
+
+
+@dataclass
+class _Output:
+    received: float
+    frame_id: str
+    child_frame_id: str = ""
+    T: np.ndarray | None = None
+    num_points: int = 0
+    fields: tuple[str, ...] = ()
+
+
+class Client:
+    """The harness's rclpy node: publishes pairs, records the node's outputs and /diagnostics.
+
+    Runs its own context and executor thread; outputs are keyed by header stamp (ns).
+    """
+
+    def __init__(self, namespace: str, output_reliability: str = "reliable") -> None:
+        import rclpy
+        from diagnostic_msgs.msg import DiagnosticArray
+        from geometry_msgs.msg import TransformStamped
+        from rclpy.context import Context
+        from rclpy.executors import SingleThreadedExecutor
+        from rclpy.node import Node
+        from rclpy.qos import QoSProfile, ReliabilityPolicy
+        from sensor_msgs.msg import PointCloud2
+
+        self._rclpy = rclpy
+        self.ctx = Context()
+        rclpy.init(args=[], context=self.ctx)
+        self.node = Node("genreg_replay", context=self.ctx)
+        self.fqn = _topic(namespace, NODE_NAME)
+        pub_qos = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
+        out_qos = QoSProfile(depth=50, reliability=ReliabilityPolicy[output_reliability.upper()])
+        self.pub_source = self.node.create_publisher(PointCloud2, _topic(namespace, "source_cloud"), pub_qos)
+        self.pub_target = self.node.create_publisher(PointCloud2, _topic(namespace, "target_cloud"), pub_qos)
+        self.lock = threading.Lock()
+        self.transforms: dict[int, _Output] = {}
+        self.aligned: dict[int, _Output] = {}
+        self.diags: list[tuple[float, dict[str, str]]] = []
+        self.sub_tf = self.node.create_subscription(
+            TransformStamped, _topic(namespace, "transform"), self._on_transform, out_qos)
+        self.sub_aligned = self.node.create_subscription(
+            PointCloud2, _topic(namespace, "aligned_cloud"), self._on_aligned, out_qos)
+        self.sub_diag = self.node.create_subscription(DiagnosticArray, "/diagnostics", self._on_diag, 20)
+        self.executor = SingleThreadedExecutor(context=self.ctx)
+        self.executor.add_node(self.node)
+        self._thread = threading.Thread(target=self.executor.spin, name="replay_executor", daemon=True)
+        self._thread.start()
+
+    @staticmethod
+    def _stamp(msg: Any) -> int:
+        return int(msg.header.stamp.sec) * 1_000_000_000 + int(msg.header.stamp.nanosec)
+
+    def _on_transform(self, msg: Any) -> None:
+        from scipy.spatial.transform import Rotation
+
+        now = time.monotonic()
+        tr, q = msg.transform.translation, msg.transform.rotation
+        T = np.eye(4)
+        T[:3, :3] = Rotation.from_quat([q.x, q.y, q.z, q.w]).as_matrix()
+        T[:3, 3] = [tr.x, tr.y, tr.z]
+        with self.lock:
+            self.transforms[self._stamp(msg)] = _Output(now, msg.header.frame_id, msg.child_frame_id, T)
+
+    def _on_aligned(self, msg: Any) -> None:
+        out = _Output(time.monotonic(), msg.header.frame_id, num_points=int(msg.width) * int(msg.height),
+                      fields=tuple(f.name for f in msg.fields))
+        with self.lock:
+            self.aligned[self._stamp(msg)] = out
+
+    def _on_diag(self, msg: Any) -> None:
+        now = time.monotonic()
+        for status in msg.status:
+            if status.hardware_id == self.fqn:
+                with self.lock:
+                    self.diags.append((now, {kv.key: kv.value for kv in status.values}))
+                    del self.diags[:-50]
+
+    def counters(self, newer_than: float, timeout: float) -> dict[str, int] | None:
+        """The node's counters from the first /diagnostics received after `newer_than` (monotonic)."""
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            with self.lock:
+                fresh = [d for t, d in self.diags if t > newer_than]
+            if fresh:
+                return _counts(fresh[0])
+            time.sleep(0.02)
+        return None
+
+    def matched(self) -> bool:
+        return (self.pub_source.get_subscription_count() > 0 and self.pub_target.get_subscription_count() > 0
+                and self.sub_tf.get_publisher_count() > 0 and self.sub_aligned.get_publisher_count() > 0)
+
+    def clear_outputs(self) -> None:
+        with self.lock:
+            self.transforms.clear()
+            self.aligned.clear()
+
+    def close(self) -> None:
+        self.executor.shutdown(timeout_sec=2.0)
+        self.node.destroy_node()
+        self._rclpy.try_shutdown(context=self.ctx)
+        self._thread.join(timeout=2.0)
+
+
+def _counts(values: dict[str, str]) -> dict[str, int]:
+    out = {}
+    for key, value in values.items():
+        if key == "registered" or key.startswith(("dropped.", "failed.")):
+            try:
+                out[key] = int(value)
+            except ValueError:
+                pass
+    return out
+
+
+def _delta(after: dict[str, int], before: dict[str, int]) -> dict[str, int]:
+    return {k: v - before.get(k, 0) for k, v in after.items() if v - before.get(k, 0) > 0}
+
+
+# ----------------------------------------------------------------------------- the replay of one bag
+def make_pairs(bag: BagData, gap: int) -> list[PairResult]:
+    """Pairs (target = cloud k - gap, source = cloud k) with their ground truth T_target_source."""
+    if gap < 1 or gap >= len(bag.clouds):
+        raise ReplayError(f"gap {gap} needs a bag with more than {gap} clouds ({bag.path} has {len(bag.clouds)})")
+    frames = bag.frame_numbers
+    pairs = []
+    for k in range(gap, len(bag.clouds)):
+        src, tgt = bag.clouds[k], bag.clouds[k - gap]
+        Tw_s, Tw_t = bag.pose_at(src.stamp_ns), bag.pose_at(tgt.stamp_ns)
+        T_gt = None if Tw_s is None or Tw_t is None else np.linalg.inv(Tw_t) @ Tw_s
+        finite = 0 if src.points is None else int(np.isfinite(src.points).all(axis=1).sum())
+        bad = f"source: {src.error}" if src.error else f"target: {tgt.error}" if tgt.error else ""
+        pairs.append(PairResult(str(bag.path), k, frames[k], frames[k - gap], src.stamp_ns, tgt.stamp_ns,
+                                src.frame_id, tgt.frame_id, finite, T_gt, malformed=bad))
+    return pairs
+
+
+def _check_alive(node: NodeProcess | None) -> None:
+    if node is not None and not node.alive():
+        raise ReplayError(f"register_node exited (code {node.proc.returncode}): {node.error_line()}")
+
+
+def play(bag: BagData, client: Client, options: ReplayOptions, node: NodeProcess | None) -> tuple[
+        list[PairResult], dict[str, int]]:
+    """Publish the bag's pairs, wait for the outputs; returns the pairs and the node's counter deltas."""
+    pairs = make_pairs(bag, options.gap)
+    client.clear_outputs()
+    before = client.counters(time.monotonic(), timeout=5.0)
+    if before is None:
+        raise ReplayError(f"no /diagnostics from {client.fqn} within 5 s")
+    clouds, t0 = bag.clouds, time.monotonic()
+    first = clouds[options.gap].stamp_ns
+    for pair in pairs:
+        if options.rate > 0:
+            delay = t0 + (pair.source_stamp - first) / 1e9 / options.rate - time.monotonic()
+            if delay > 0:
+                time.sleep(delay)
+        _check_alive(node)
+        client.pub_target.publish(restamp(clouds[pair.k - options.gap].raw, pair.source_stamp))
+        pair.published = time.monotonic()
+        client.pub_source.publish(clouds[pair.k].raw)
+        if options.lockstep:
+            _wait_for(client, [pair], options.pair_timeout, node)
+    _wait_for(client, pairs, options.settle_timeout, node)
+    after = client.counters(time.monotonic() + 0.05, timeout=5.0) or before
+    deltas = _delta(after, before)
+    _collect(pairs, client)
+    _assign_reasons(pairs, deltas)
+    return pairs, deltas
+
+
+def _wait_for(client: Client, pairs: list[PairResult], timeout: float, node: NodeProcess | None) -> None:
+    """Until every pair has an output or the node's counters stop changing (two diagnostics in a row with
+    the same counters, after the last publish) or the timeout."""
+    start = time.monotonic()
+    last_seen: dict[str, int] | None = None
+    t_last = start
+    while time.monotonic() - start < timeout:
+        with client.lock:
+            if all(p.source_stamp in client.transforms and p.source_stamp in client.aligned for p in pairs):
+                return
+        _check_alive(node)
+        counts = client.counters(t_last, timeout=0.2)
+        if counts is not None:
+            t_last = time.monotonic()
+            if counts == last_seen and t_last - start > 0.5:
+                time.sleep(0.1)  # outputs of the last registration may still be in flight
+                return
+            last_seen = counts
+    # timeout: pairs without output are reported as such
+
+
+def _collect(pairs: list[PairResult], client: Client) -> None:
+    """Copy the outputs into the pairs and check their stamps (by key), frames and point counts."""
+    with client.lock:
+        transforms, aligned = dict(client.transforms), dict(client.aligned)
+    for p in pairs:
+        tf, cloud = transforms.get(p.source_stamp), aligned.get(p.source_stamp)
+        if tf is None:
+            continue
+        p.T_est, p.received = tf.T, tf.received
+        if tf.frame_id != p.target_frame_id:
+            p.header_problems.append(f"transform parent {tf.frame_id!r} != target frame {p.target_frame_id!r}")
+        if tf.child_frame_id != p.source_frame_id:
+            p.header_problems.append(f"transform child {tf.child_frame_id!r} != source frame {p.source_frame_id!r}")
+        if cloud is None:
+            p.header_problems.append("no aligned_cloud with the source's stamp")
+            continue
+        p.aligned_received = cloud.received
+        if cloud.frame_id != p.target_frame_id:
+            p.header_problems.append(f"aligned frame {cloud.frame_id!r} != target frame {p.target_frame_id!r}")
+        if cloud.num_points != p.source_points:
+            p.header_problems.append(f"aligned cloud has {cloud.num_points} points, source {p.source_points}")
+
+
+def _assign_reasons(pairs: list[PairResult], deltas: dict[str, int]) -> None:
+    """Give each pair without output a reason, consuming the node's counted drops and failures."""
+    pool = Counter(deltas)
+    for p in pairs:
+        if p.registered:
+            continue
+        if p.malformed:
+            role, reason = p.malformed.split(": ", 1)
+            counted = pool[f"dropped.{reason}"] > 0
+            pool[f"dropped.{reason}"] -= counted
+            p.reason = f"malformed {role} ({reason})" + ("" if counted else ", not counted by the node")
+            continue
+        for prefix in PAIR_REASONS:
+            key = next((k for k in sorted(pool) if k.startswith(prefix) and pool[k] > 0), None)
+            if key is not None:
+                pool[key] -= 1
+                p.reason = f"node {key}"
+                break
+        else:
+            p.reason = "lost (no output, not counted by the node)"
+
+
+# ----------------------------------------------------------------------------- the API
+def _malformed(bag: BagData) -> list[dict[str, Any]]:
+    frames = bag.frame_numbers
+    return [{"bag": str(bag.path), "index": i, "frame": frames[i], "stamp_ns": c.stamp_ns, "reason": c.error,
+             "text": c.error_text} for i, c in enumerate(bag.clouds) if c.error]
+
+
+def _run_icp(bag: BagData, pairs: list[PairResult]) -> None:
+    """Open3D point-to-point ICP on each pair's bag clouds (source = cloud k, target = its target)."""
+    by_stamp = {c.stamp_ns: c.points for c in bag.clouds}
+    for p in pairs:
+        src, tgt = by_stamp.get(p.source_stamp), by_stamp.get(p.target_stamp)
+        if src is not None and tgt is not None and len(src) >= 3 and len(tgt) >= 3:
+            p.icp_T, p.icp_seconds = icp_point_to_point(src, tgt)
+
+
+def replay(bags: list[str | Path], options: ReplayOptions) -> ReplayResult:
+    """Replay bags (one after the other, pairs never span bags) through register_node and evaluate."""
+    log = _printer(options.verbose)
+    ros_env()
+    data = []
+    for b in bags:
+        bag = read_bag(b)
+        if not bag.poses:
+            log(f"note: {b} has no pose topic: RE/TE cannot be computed")
+        data.append(bag)
+    node = None
+    if not options.connect:
+        node_log = options.node_log or (options.report_dir or REPO / "cache" / "replay") / "register_node.log"
+        node = NodeProcess(options, Path(node_log))
+        log(f"started register_node (pid {node.proc.pid}, log {node_log})")
+    out_rel = "reliable" if options.connect else yaml_param(options.params_file, "qos.publisher_reliability",
+                                                            "reliable")
+    client = None
+    try:
+        client = Client(options.namespace, options.node_params.get("qos.publisher_reliability", out_rel))
+        deadline = time.monotonic() + options.startup_timeout
+        while not (client.matched() and client.counters(0.0, timeout=0.05) is not None):
+            _check_alive(node)
+            if time.monotonic() > deadline:
+                raise ReplayError(f"register_node at {client.fqn} not reachable within {options.startup_timeout:.0f} s "
+                                  "(same ROS_DOMAIN_ID, ROS_AUTOMATIC_DISCOVERY_RANGE and namespace?)")
+            time.sleep(0.1)
+        log(f"connected to {client.fqn}; replaying {len(data)} bag(s), gap {options.gap}, "
+            + ("lockstep" if options.lockstep else f"rate {options.rate:g}x" if options.rate else "as fast as possible"))
+        pairs, counts, malformed = [], Counter(), []
+        for bag in data:
+            got, deltas = play(bag, client, options, node)
+            pairs += got
+            counts.update(deltas)
+            malformed += _malformed(bag)
+    finally:
+        if client is not None:
+            client.close()
+        if node is not None:
+            code = node.stop()
+            if code not in (0, None, -signal.SIGINT):
+                log(f"note: register_node exited with code {code} (log {node.log_path})")
+    if options.icp:
+        for bag in data:
+            _run_icp(bag, [p for p in pairs if p.bag == str(bag.path)])
+    summary = summarize(pairs, dict(counts), malformed)
+    text = format_summary(summary, _title(data, options))
+    report = None
+    if options.report_dir is not None:
+        starts = {str(b.path): b.pose_at(b.clouds[0].stamp_ns) for b in data if b.pose_at(b.clouds[0].stamp_ns) is not None}
+        report = write_report(Path(options.report_dir), summary, pairs, text, options.gap, starts,
+                              _settings(data, options))
+    return ReplayResult(pairs, summary, text, report)
+
+
+def _title(data: list[BagData], options: ReplayOptions) -> str:
+    names = []
+    for b in data:
+        f = b.frame_numbers
+        names.append(f"{b.info.get('sequence', Path(b.path).name)} {f[0]}-{f[-1]}")
+    mode = "lockstep" if options.lockstep else f"rate {options.rate:g}x" if options.rate else "as fast as possible"
+    model = options.checkpoint or yaml_param(options.params_file, "model.checkpoint", "?")
+    return f"genreg replay: {', '.join(names)} | gap {options.gap} | {mode} | model {model}"
+
+
+def _settings(data: list[BagData], options: ReplayOptions) -> dict[str, Any]:
+    return {
+        "title": _title(data, options), "bags": [str(b.path) for b in data], "gap": options.gap,
+        "rate": options.rate, "lockstep": options.lockstep, "node": "connected" if options.connect else "started",
+        "params_file": str(options.params_file), "checkpoint": options.checkpoint or "(params file)",
+        "node_params": {"sync.slop": RELAY_SLOP, **options.node_params} if not options.connect else {},
+        "ROS_DOMAIN_ID": os.environ.get("ROS_DOMAIN_ID"), "icp": "Open3D point-to-point, identity start, "
+        "voxel 0.02 m, max distance 0.1 m, 50 iterations",
+    }
+
+
+def _printer(verbose: bool):
+    def log(text: str) -> None:
+        if verbose:
+            print(text, file=sys.stderr, flush=True)
+    return log
+
+
+# ----------------------------------------------------------------------------- checkpoint fallback and CLI
+def resolve_model(name: str, fallback_dir: Path | None) -> tuple[str, str]:
+    """(checkpoint to use, note). With fallback_dir, a missing checkpoint is replaced by a randomly
+    initialised one written there (plumbing only: its accuracy means nothing)."""
+    from genreg_core.checkpoint import resolve_checkpoint
+    from genreg_core.errors import CheckpointError
+
+    try:
+        resolve_checkpoint(name)
+        return name, ""
+    except CheckpointError as exc:
+        if fallback_dir is None:
+            raise ReplayError(f"{exc}; train one with genreg-train, pass --checkpoint PATH, "
+                              "or --untrained-fallback to test the plumbing") from None
+        import torch
+
+        from genreg_core.checkpoint import save_checkpoint
+        from genreg_core.config import ModelConfig
+        from genreg_core.model.genreg import GenRegNet
+
+        path = Path(fallback_dir) / "untrained_n512_seed0.pt"
+        if not path.is_file():
+            torch.manual_seed(0)
+            save_checkpoint(GenRegNet(ModelConfig()), path, meta={"note": "untrained, for plumbing tests"})
+        note = (f"NOTE: checkpoint {name!r} is missing ({exc}). Falling back to an UNTRAINED model ({path}): "
+                "the pipeline runs, but the figures measure PDSAC + ICP refinement on random features, "
+                "not GenReg's accuracy.")
+        return str(path), note
+
+
+def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
+    p = argparse.ArgumentParser(prog="genreg-replay", description=__doc__.split("\n\n")[0],
+                                formatter_class=argparse.RawDescriptionHelpFormatter, epilog=__doc__)
+    p.add_argument("--bag", action="append", required=True, help="bag folder (repeat for several)")
+    p.add_argument("--gap", type=int, default=1, help="target = frame i, source = frame i + gap (bag clouds)")
+    p.add_argument("--rate", type=float, default=1.0, help="playback speed factor; 0: as fast as possible")
+    p.add_argument("--lockstep", action="store_true", help="wait for each pair's result before the next")
+    p.add_argument("--namespace", default="", help="the node's namespace")
+    p.add_argument("--connect", action="store_true", help="use a running register_node, do not start one")
+    p.add_argument("--params-file", type=Path, default=DEFAULT_PARAMS)
+    p.add_argument("--checkpoint", help="model.checkpoint for the node (default: the params file's)")
+    p.add_argument("--untrained-fallback", action="store_true",
+                   help="if the checkpoint is missing, use an untrained model (with a clear note)")
+    p.add_argument("-p", "--param", action="append", default=[], metavar="NAME:=VALUE",
+                   help="extra node parameter override (repeatable)")
+    p.add_argument("--no-icp", action="store_true", help="skip the Open3D ICP baseline")
+    p.add_argument("--report", type=Path, help="report folder (report.md, errors.png, trajectory.png)")
+    p.add_argument("--startup-timeout", type=float, default=90.0)
+    p.add_argument("--quiet", action="store_true")
+    return p.parse_args(argv)
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = parse_args(argv)
+    options = ReplayOptions(
+        gap=args.gap, rate=args.rate, lockstep=args.lockstep, namespace=args.namespace, connect=args.connect,
+        params_file=args.params_file, checkpoint=args.checkpoint,
+        node_params=dict(kv.split(":=", 1) for kv in args.param), icp=not args.no_icp,
+        report_dir=args.report, startup_timeout=args.startup_timeout, verbose=not args.quiet,
+    )
+    try:
+        if not args.connect:
+            name = options.checkpoint or yaml_param(options.params_file, "model.checkpoint", "modelnet40")
+            fallback = REPO / "cache" / "checkpoints" if args.untrained_fallback else None
+            model, note = resolve_model(str(name), fallback)
+            if note:
+                print(note, flush=True)
+                options.checkpoint = model
+        result = replay(args.bag, options)
+    except (ReplayError, OSError, ValueError) as exc:
+        print(f"genreg-replay: error: {exc}", file=sys.stderr)
+        return 1
+    print(result.text)
+    if result.report is not None:
+        print(f"report             {result.report}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
