@@ -8,8 +8,8 @@ Conventions:
 - Points with a NaN/Inf coordinate are dropped; `DecodedCloud.mask` says which ones were kept.
 
 Speed: nothing here loops over points. `msg.data` is read with `np.frombuffer` (no copy) and written
-with `array.array.frombytes` (one copy), because the generated `data` setter is slow on anything but
-an `array.array('B')` (element-by-element checks).
+as one `array.array('B')` built with `frombytes` (one memcpy) and handed to the message without a
+further copy (see `_new_cloud`); the generated `data` setter is slow on anything else.
 """
 
 from __future__ import annotations
@@ -169,16 +169,29 @@ def read_points(msg: PointCloud2, max_points: int | None = None) -> DecodedCloud
     finite = np.isfinite(points)
     if not finite.all():  # a flat reduction is ~50x faster than .all(axis=1); this path is the rare one
         mask = finite[:, 0] & finite[:, 1] & finite[:, 2]
-        points = points[mask]
+        points = points.take(np.flatnonzero(mask), axis=0)  # ~20x faster than points[mask] on (n, 3)
         if len(points) == 0:
             raise PointCloud2Error("no_finite_points", f"all {num} points are NaN/Inf")
     return DecodedCloud(points=points, mask=mask, records=records, layout=layout, num_input=num)
 
 
 def _to_data(buffer: np.ndarray) -> array.array:
+    """The bytes of `buffer` in a new array.array('B') (one memcpy)."""
     data = array.array("B")
     data.frombytes(np.ascontiguousarray(buffer).reshape(-1).view(np.uint8))
     return data
+
+
+def _new_cloud(data: array.array, **fields) -> PointCloud2:
+    """A PointCloud2 that keeps `data` as is. With check_fields=True the generated setter stores an
+    array.array('B') without copying it (otherwise it copies; a memoryview or ndarray would even go
+    element by element). Distros without the check_fields argument get the copying path."""
+    try:
+        msg = PointCloud2(check_fields=True, **fields)
+    except (AssertionError, TypeError):
+        msg = PointCloud2(**fields)
+    msg.data = data
+    return msg
 
 
 def replace_points(header: Header, cloud: DecodedCloud, points: np.ndarray) -> PointCloud2:
@@ -187,17 +200,23 @@ def replace_points(header: Header, cloud: DecodedCloud, points: np.ndarray) -> P
     Every other field, the field list, point_step and byte order are kept. The output is unorganised
     (height 1) and dense, since non-finite points were dropped.
     """
-    records = cloud.records[cloud.mask] if cloud.mask is not None else cloud.records.copy()
+    records = cloud.records
+    if cloud.mask is not None:
+        records = records.take(np.flatnonzero(cloud.mask), axis=0)  # row gather, not per-byte masking
     if len(points) != len(records):
         raise ValueError(f"{len(points)} points given for a cloud of {len(records)} kept points")
-    views = _xyz_view(records, cloud.layout)
+    data = _to_data(records)
+    out = np.frombuffer(data, dtype=np.uint8).reshape(len(records), cloud.layout.point_step)
+    views = _xyz_view(out, cloud.layout)
     if len(views) == 1:
         views[0][...] = points
     else:
         for i, view in enumerate(views):
             view[...] = points[:, i]
+    del out, views  # release the buffer exports of `data`
     layout = cloud.layout
-    msg = PointCloud2(
+    return _new_cloud(
+        data,
         header=header,
         height=1,
         width=len(records),
@@ -207,8 +226,6 @@ def replace_points(header: Header, cloud: DecodedCloud, points: np.ndarray) -> P
         row_step=layout.point_step * len(records),
         is_dense=True,
     )
-    msg.data = _to_data(records)
-    return msg
 
 
 def array_to_msg(header: Header, records: np.ndarray, is_dense: bool = True) -> PointCloud2:
@@ -233,7 +250,8 @@ def array_to_msg(header: Header, records: np.ndarray, is_dense: bool = True) -> 
     if len(orders) > 1:
         raise ValueError("all fields must share one byte order")
     height, width = (1, records.shape[0]) if records.ndim == 1 else records.shape
-    msg = PointCloud2(
+    return _new_cloud(
+        _to_data(records),
         header=header,
         height=height,
         width=width,
@@ -243,8 +261,6 @@ def array_to_msg(header: Header, records: np.ndarray, is_dense: bool = True) -> 
         row_step=dt.itemsize * width,
         is_dense=is_dense,
     )
-    msg.data = _to_data(np.ascontiguousarray(records))
-    return msg
 
 
 def xyz_to_msg(header: Header, points: np.ndarray) -> PointCloud2:
