@@ -4,10 +4,12 @@
     genreg-replay --bag b1 --bag b2 --gap 5 --lockstep --report cache/replay/x
     genreg-replay --bag b --connect --namespace /robot                    # a node that is already running
 
-Relay: cloud k of a bag is published on `<ns>/source_cloud` with its own stamp, and cloud k - gap (the
-target) on `<ns>/target_cloud` with its stamp rewritten to cloud k's, so the node's approximate-time sync
-pairs them exactly (a node started here gets sync.slop 1 ms, so a lost message can never be paired with
-a neighbour's cloud). The node answers with `transform` (T_target_source: x_target = R x_source + t) and
+Relay: cloud k of a bag is published on `<ns>/source_cloud`, and cloud k - gap (the target) on
+`<ns>/target_cloud` with cloud k's stamp, so the node's approximate-time sync pairs them exactly (a node
+started here gets sync.slop 1 ms, so a lost message can never be paired with a neighbour's cloud).
+Stamps: each bag is shifted to start at the current wall-clock time (the bag's relative timing is kept),
+because the node, like any stream consumer, expects stamps to move forward across replays;
+keep_stamps publishes the bag's own stamps. The node answers with `transform` (T_target_source: x_target = R x_source + t) and
 `aligned_cloud`, both stamped with the source's stamp, which is how outputs are matched to pairs.
 Timing: clouds go out at their bag timing divided by `rate` (rate 0: as fast as possible); `lockstep`
 waits for each pair's output, or for the node to count it as dropped, before the next one.
@@ -60,6 +62,7 @@ class ReplayOptions:
     gap: int = 1  # target = cloud k - gap, source = cloud k
     rate: float = 1.0  # playback speed factor; 0 publishes as fast as possible
     lockstep: bool = False  # wait for each pair's output (or counted drop) before the next
+    keep_stamps: bool = False  # publish the bag's stamps instead of shifting them to the current time
     namespace: str = ""
     connect: bool = False  # use a running node instead of starting one
     params_file: Path = DEFAULT_PARAMS
@@ -270,7 +273,7 @@ class Client:
 def _counts(values: dict[str, str]) -> dict[str, int]:
     out = {}
     for key, value in values.items():
-        if key == "registered" or key.startswith(("dropped.", "failed.")):
+        if key in ("registered", "paired") or key.startswith(("dropped.", "failed.", "received.")):
             try:
                 out[key] = int(value)
             except ValueError:
@@ -315,18 +318,22 @@ def play(bag: BagData, client: Client, options: ReplayOptions, node: NodeProcess
         raise ReplayError(f"no /diagnostics from {client.fqn} within 5 s")
     clouds, t0 = bag.clouds, time.monotonic()
     first = clouds[options.gap].stamp_ns
+    offset = 0 if options.keep_stamps else time.time_ns() - first
+    for pair in pairs:
+        pair.out_stamp = pair.source_stamp + offset
     for pair in pairs:
         if options.rate > 0:
             delay = t0 + (pair.source_stamp - first) / 1e9 / options.rate - time.monotonic()
             if delay > 0:
                 time.sleep(delay)
         _check_alive(node)
-        client.pub_target.publish(restamp(clouds[pair.k - options.gap].raw, pair.source_stamp))
+        client.pub_target.publish(restamp(clouds[pair.k - options.gap].raw, pair.out_stamp))
+        source = clouds[pair.k].raw if options.keep_stamps else restamp(clouds[pair.k].raw, pair.out_stamp)
         pair.published = time.monotonic()
-        client.pub_source.publish(clouds[pair.k].raw)
+        client.pub_source.publish(source)
         if options.lockstep:
-            _wait_for(client, [pair], options.pair_timeout, node)
-    _wait_for(client, pairs, options.settle_timeout, node)
+            _wait_for(client, [pair], options.pair_timeout, node, stable_for=0.9)
+    _wait_for(client, pairs, options.settle_timeout, node, stable_for=1.9)
     after = client.counters(time.monotonic() + 0.05, timeout=5.0) or before
     deltas = _delta(after, before)
     _collect(pairs, client)
@@ -334,24 +341,27 @@ def play(bag: BagData, client: Client, options: ReplayOptions, node: NodeProcess
     return pairs, deltas
 
 
-def _wait_for(client: Client, pairs: list[PairResult], timeout: float, node: NodeProcess | None) -> None:
-    """Until every pair has an output or the node's counters stop changing (two diagnostics in a row with
-    the same counters, after the last publish) or the timeout."""
+def _wait_for(client: Client, pairs: list[PairResult], timeout: float, node: NodeProcess | None,
+              stable_for: float) -> None:
+    """Until every pair has an output, or the node's counters (received, paired, registered, dropped,
+    failed) stay unchanged over diagnostics spanning `stable_for` seconds, or the timeout."""
     start = time.monotonic()
-    last_seen: dict[str, int] | None = None
-    t_last = start
+    seen: dict[str, int] | None = None
+    seen_at = t_last = start
     while time.monotonic() - start < timeout:
         with client.lock:
-            if all(p.source_stamp in client.transforms and p.source_stamp in client.aligned for p in pairs):
+            if all(p.out_stamp in client.transforms and p.out_stamp in client.aligned for p in pairs):
                 return
         _check_alive(node)
         counts = client.counters(t_last, timeout=0.2)
-        if counts is not None:
-            t_last = time.monotonic()
-            if counts == last_seen and t_last - start > 0.5:
-                time.sleep(0.1)  # outputs of the last registration may still be in flight
-                return
-            last_seen = counts
+        if counts is None:
+            continue
+        t_last = time.monotonic()
+        if counts != seen:
+            seen, seen_at = counts, t_last
+        elif t_last - seen_at >= stable_for:
+            time.sleep(0.1)  # outputs of the last registration may still be in flight
+            return
     # timeout: pairs without output are reported as such
 
 
@@ -360,7 +370,7 @@ def _collect(pairs: list[PairResult], client: Client) -> None:
     with client.lock:
         transforms, aligned = dict(client.transforms), dict(client.aligned)
     for p in pairs:
-        tf, cloud = transforms.get(p.source_stamp), aligned.get(p.source_stamp)
+        tf, cloud = transforms.get(p.out_stamp), aligned.get(p.out_stamp)
         if tf is None:
             continue
         p.T_est, p.received = tf.T, tf.received
@@ -536,6 +546,8 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     p.add_argument("--gap", type=int, default=1, help="target = frame i, source = frame i + gap (bag clouds)")
     p.add_argument("--rate", type=float, default=1.0, help="playback speed factor; 0: as fast as possible")
     p.add_argument("--lockstep", action="store_true", help="wait for each pair's result before the next")
+    p.add_argument("--keep-stamps", action="store_true",
+                   help="publish the bag's stamps (default: shift each bag to start now)")
     p.add_argument("--namespace", default="", help="the node's namespace")
     p.add_argument("--connect", action="store_true", help="use a running register_node, do not start one")
     p.add_argument("--params-file", type=Path, default=DEFAULT_PARAMS)
@@ -554,7 +566,7 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
 def main(argv: list[str] | None = None) -> int:
     args = parse_args(argv)
     options = ReplayOptions(
-        gap=args.gap, rate=args.rate, lockstep=args.lockstep, namespace=args.namespace, connect=args.connect,
+        gap=args.gap, rate=args.rate, lockstep=args.lockstep, keep_stamps=args.keep_stamps, namespace=args.namespace, connect=args.connect,
         params_file=args.params_file, checkpoint=args.checkpoint,
         node_params=dict(kv.split(":=", 1) for kv in args.param), icp=not args.no_icp,
         report_dir=args.report, startup_timeout=args.startup_timeout, verbose=not args.quiet,

@@ -28,12 +28,13 @@ class PairResult:
     k: int  # index of the source cloud in the bag; the target is cloud k - gap
     source_frame: int
     target_frame: int
-    source_stamp: int  # ns; also the stamp the node must put on its outputs
-    target_stamp: int  # ns, the target's original stamp (the relay restamps its copy to source_stamp)
+    source_stamp: int  # ns, the source's stamp in the bag
+    target_stamp: int  # ns, the target's stamp in the bag
     source_frame_id: str
     target_frame_id: str
     source_points: int  # finite source points (what the aligned cloud must carry)
     T_gt: np.ndarray | None  # 4x4 T_target_source from the bag's poses
+    out_stamp: int = 0  # ns, the stamp published with both clouds, which the node must put on its outputs
     published: float | None = None  # time.monotonic() just before the source was published
     malformed: str = ""  # "source: <reason>" / "target: <reason>" when the harness found the bag message bad
     T_est: np.ndarray | None = None  # the node's transform
