@@ -49,7 +49,7 @@ from genreg_ros.pointcloud2 import (
     PointCloud2Error,
     parse_layout,
     read_points,
-    replace_points,
+    transform_cloud,
     xyz_to_msg,
 )
 from genreg_ros.sync import SOURCE, TARGET, LatestSlot, Pair, PairSync
@@ -94,6 +94,7 @@ class Stats:
         self.overhead = deque(maxlen=100)  # s, node work besides preprocessing and registration
         self.callback = deque(maxlen=200)  # s, one cloud subscription callback (checks + pairing)
         self.last: dict[str, float] = {}
+        self.history = deque(maxlen=100)  # figures of the last registered pairs (benchmarks read them)
         self.last_outcome = ""  # "", "registered" or "failed: <reason>"
 
     def arrived(self, topic: str, now: float) -> None:
@@ -116,13 +117,8 @@ class Stats:
             self.latency.append(latency)
             self.overhead.append(overhead)
             self.last = dict(figures)
+            self.history.append(self.last)
             self.last_outcome = "registered"
-
-
-def transform_points(T: np.ndarray, points: np.ndarray) -> np.ndarray:
-    """x' = R x + t for row points, computed in the points' own dtype."""
-    R = T[:3, :3].astype(points.dtype)
-    return points @ R.T + T[:3, 3].astype(points.dtype)
 
 
 def matrix_to_msg(T: np.ndarray, header: Header, child_frame: str) -> TransformStamped:
@@ -365,7 +361,7 @@ class RegisterNode(Node):
             return
         T = result.transformation
         header = Header(stamp=src_cloud.msg.header.stamp, frame_id=tgt_cloud.frame)
-        aligned = replace_points(header, src, transform_points(T, src.points))
+        aligned = transform_cloud(header, src, T)
         transform = matrix_to_msg(T, header, src_cloud.frame)
         t5 = time.perf_counter()
         self._pub_aligned.publish(aligned)

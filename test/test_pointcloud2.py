@@ -16,6 +16,7 @@ from genreg_ros.pointcloud2 import (
     array_to_msg,
     read_points,
     replace_points,
+    transform_cloud,
     xyz_to_msg,
 )
 
@@ -186,3 +187,26 @@ def test_large_cloud_round_trip_matches_struct_on_a_sample():
         x, y, z, rgb = struct.unpack_from("<fffI", bytes(out.data[i * 16:(i + 1) * 16]))
         j = kept[i]
         assert (x, y, z, rgb) == (2 * rec["x"][j], 2 * rec["y"][j], 2 * rec["z"][j], rec["rgb"][j])
+
+
+@pytest.mark.parametrize(("fmt", "big"), [("f", False), ("d", True)])
+def test_transform_cloud_matches_independent_math(fmt, big):
+    dt = F32 if fmt == "f" else F64
+    size = 4 if fmt == "f" else 8
+    fields = [("x", 0, dt), ("y", size, dt), ("z", 2 * size, dt), ("ring", 3 * size, U16)]
+    rng = np.random.default_rng(2)
+    pts = rng.normal(size=(50, 3)) * 10
+    pts[7, 1] = math.nan
+    rows = [(*p, i) for i, p in enumerate(pts)]
+    msg = build(fields, rows, point_step=3 * size + 4, big=big)
+    T = np.eye(4)
+    c, s = math.cos(0.3), math.sin(0.3)
+    T[:3, :3] = [[c, -s, 0], [s, c, 0], [0, 0, 1]]
+    T[:3, 3] = [1.0, -2.0, 0.5]
+    out = transform_cloud(Header(frame_id="map"), read_points(msg), T)
+    keep = [i for i in range(50) if i != 7]
+    src = pts[keep].astype(np.float32 if fmt == "f" else np.float64).astype(np.float64)
+    expected = np.array([[c * x - s * y + 1.0, s * x + c * y - 2.0, z + 0.5] for x, y, z in src])
+    got = np.c_[unpack(out, "x"), unpack(out, "y"), unpack(out, "z")]
+    np.testing.assert_allclose(got, expected, atol=1e-5 if fmt == "f" else 1e-12)
+    assert unpack(out, "ring") == keep and out.is_bigendian == big
