@@ -26,48 +26,43 @@ reg = o3d.pipelines.registration
 
 @dataclass(frozen=True)
 class BaselineParams:
-    """Lengths in the clouds' units. Radii follow the usual multiples of the voxel size."""
+    """Every length is in the clouds' units (unit-box units or metres)."""
 
-    voxel_size: float = 0.02  # FPFH downsampling voxel (0 or less: no downsampling)
-    icp_max_distance: float = 0.5  # ICP from identity: correspondence cut-off
+    icp_max_distance: float = 0.5  # ICP from identity (p2p, p2plane): correspondence cut-off
     icp_max_iterations: int = 50
-    icp_voxel_size: float = 0.0  # ICP/GICP downsampling voxel (0: use the points as given)
-    normal_radius_factor: float = 2.0  # normal radius = factor * feature voxel
-    fpfh_radius_factor: float = 5.0  # FPFH radius = factor * feature voxel
-    ransac_distance_factor: float = 1.5  # RANSAC inlier distance = factor * feature voxel
+    icp_voxel_size: float = 0.0  # ICP/GICP input downsampling voxel (0: the points as given)
+    feature_voxel_size: float = 0.0  # FPFH pipelines: downsampling voxel (0: the points as given)
+    normal_radius: float = 0.1  # normals for FPFH and point-to-plane (max 30 neighbours)
+    fpfh_radius: float = 0.25  # FPFH support (max 100 neighbours)
+    ransac_distance: float = 0.05  # RANSAC inlier distance (also its distance checker)
     ransac_max_iterations: int = 100_000
     ransac_confidence: float = 0.999
-    fgr_distance_factor: float = 0.5  # FGR correspondence distance = factor * feature voxel
-    refine_distance_factor: float = 1.0  # ICP after RANSAC: cut-off = factor * feature voxel
+    fgr_distance: float = 0.05  # FGR correspondence distance (absolute scale, annealed)
+    refine_distance: float = 0.1  # ICP after RANSAC: correspondence cut-off
     gicp_max_distance: float = 0.5  # small_gicp correspondence cut-off
+    gicp_voxel_size: float = 0.005  # small_gicp downsampling (needs > 0)
     threads: int = 2  # small_gicp worker threads
-    seed: int = 0  # Open3D RANSAC seed
+    seed: int = 0  # Open3D RANSAC seed (multi-threaded RANSAC is still not bit-reproducible)
 
     @classmethod
     def unit_box(cls, threads: int = 2) -> BaselineParams:
-        """Objects normalised into the unit box (ModelNet40, FMR-style pairs), 512-2048 points."""
+        """Objects in the unit box [0, 1]^3 (ModelNet40, FMR-style pairs), 512-2048 points: no downsampling."""
         return cls(threads=threads)
 
     @classmethod
     def metric_scene(cls, threads: int = 2) -> BaselineParams:
-        """RGB-D frames in metres (~300k points, 1-7 m deep), small motions between frames."""
+        """RGB-D frames in metres (~300k points, 1-7 m deep), motions of centimetres between frames."""
         return cls(
-            voxel_size=0.05, icp_max_distance=0.1, icp_voxel_size=0.02, gicp_max_distance=0.1,
-            threads=threads,
+            icp_max_distance=0.1, icp_voxel_size=0.02, feature_voxel_size=0.05, normal_radius=0.1,
+            fpfh_radius=0.25, ransac_distance=0.075, fgr_distance=0.05, refine_distance=0.05,
+            gicp_max_distance=0.1, gicp_voxel_size=0.02, threads=threads,
         )
 
     def scaled(self, extent: float) -> BaselineParams:
         """These settings with every length multiplied by `extent` (the unit box is 1 wide)."""
-        lengths = ("voxel_size", "icp_max_distance", "icp_voxel_size", "gicp_max_distance")
+        lengths = [f.name for f in dataclasses.fields(self) if f.type in ("float", float) and
+                   ("distance" in f.name or "radius" in f.name or "voxel" in f.name)]
         return dataclasses.replace(self, **{k: getattr(self, k) * extent for k in lengths})
-
-    @property
-    def normal_radius(self) -> float:
-        return self.normal_radius_factor * self.voxel_size
-
-    @property
-    def fpfh_radius(self) -> float:
-        return self.fpfh_radius_factor * self.voxel_size
 
 
 BaselineFn = Callable[[np.ndarray, np.ndarray, BaselineParams], tuple[np.ndarray, float]]
@@ -101,7 +96,7 @@ def _icp(
 def _fpfh(
     points: np.ndarray, p: BaselineParams
 ) -> tuple[o3d.geometry.PointCloud, o3d.pipelines.registration.Feature]:
-    cloud = _with_normals(_downsample(to_o3d(points), p.voxel_size), p.normal_radius)
+    cloud = _with_normals(_downsample(to_o3d(points), p.feature_voxel_size), p.normal_radius)
     feature = reg.compute_fpfh_feature(cloud, o3d.geometry.KDTreeSearchParamHybrid(radius=p.fpfh_radius, max_nn=100))
     return cloud, feature
 
@@ -109,7 +104,7 @@ def _fpfh(
 def _ransac(source: np.ndarray, target: np.ndarray, p: BaselineParams) -> np.ndarray:
     src, src_f = _fpfh(source, p)
     tgt, tgt_f = _fpfh(target, p)
-    distance = p.ransac_distance_factor * p.voxel_size
+    distance = p.ransac_distance
     o3d.utility.random.seed(p.seed)
     result = reg.registration_ransac_based_on_feature_matching(
         src, tgt, src_f, tgt_f, True, distance, reg.TransformationEstimationPointToPoint(False), 3,
@@ -142,7 +137,7 @@ def fpfh_fgr(source: np.ndarray, target: np.ndarray, p: BaselineParams) -> tuple
     src, src_f = _fpfh(source, p)
     tgt, tgt_f = _fpfh(target, p)
     option = reg.FastGlobalRegistrationOption(
-        use_absolute_scale=True, maximum_correspondence_distance=p.fgr_distance_factor * p.voxel_size
+        use_absolute_scale=True, decrease_mu=True, maximum_correspondence_distance=p.fgr_distance
     )
     result = reg.registration_fgr_based_on_feature_matching(src, tgt, src_f, tgt_f, option)
     return np.asarray(result.transformation).copy(), time.perf_counter() - t0
@@ -156,21 +151,20 @@ def fpfh_ransac(source: np.ndarray, target: np.ndarray, p: BaselineParams) -> tu
 
 
 def fpfh_ransac_icp(source: np.ndarray, target: np.ndarray, p: BaselineParams) -> tuple[np.ndarray, float]:
-    """FPFH + RANSAC, then point-to-point ICP on the ICP-resolution clouds (cut-off refine factor * voxel)."""
+    """FPFH + RANSAC, then point-to-point ICP on the ICP-resolution clouds (cut-off `refine_distance`)."""
     t0 = time.perf_counter()
     T0 = _ransac(source, target, p)
     src, tgt = _downsample(to_o3d(source), p.icp_voxel_size), _downsample(to_o3d(target), p.icp_voxel_size)
-    T = _icp(src, tgt, T0, p.refine_distance_factor * p.voxel_size, p.icp_max_iterations)
+    T = _icp(src, tgt, T0, p.refine_distance, p.icp_max_iterations)
     return T, time.perf_counter() - t0
 
 
 def small_gicp_gicp(source: np.ndarray, target: np.ndarray, p: BaselineParams) -> tuple[np.ndarray, float]:
     """small_gicp GICP from identity (its own voxel downsampling, covariances from 10 neighbours)."""
     t0 = time.perf_counter()
-    downsampling = p.icp_voxel_size if p.icp_voxel_size > 0 else 0.25 * p.voxel_size
     result = small_gicp.align(
         np.asarray(target, dtype=np.float64), np.asarray(source, dtype=np.float64),
-        registration_type="GICP", downsampling_resolution=downsampling,
+        registration_type="GICP", downsampling_resolution=p.gicp_voxel_size,
         max_correspondence_distance=p.gicp_max_distance, num_threads=p.threads,
         max_iterations=p.icp_max_iterations,
     )

@@ -34,8 +34,9 @@ class GenRegOutput:
 
     source_generated: torch.Tensor  # A_g (B, N, 3), in B's frame
     target_generated: torch.Tensor  # B_g (B, N, 3), in A's frame
-    tnet_source: torch.Tensor  # (B, 4, 4)
+    tnet_source: torch.Tensor  # (B, 4, 4) T-Net transform of centred A, after the pre-rotation
     tnet_target: torch.Tensor  # (B, 4, 4)
+    prealign: torch.Tensor  # (B, 3, 3) pre-rotation of centred A (identity when off); B gets its transpose
 
 
 class PointMixerEncoder(nn.Module):
@@ -80,6 +81,7 @@ class GenRegNet(nn.Module):
         zero = torch.zeros_like(a[:, :1])
         c_a, c_b = (centroid(a), centroid(b)) if cfg.center_inputs else (zero, zero)
         a0, b0 = a - c_a, b - c_b
+        R = torch.eye(3, dtype=a.dtype, device=a.device).expand(a.shape[0], 3, 3)
         if cfg.prealign == "pca":
             R = pca_prealign(a0, b0)
             a0, b0 = a0 @ R.transpose(1, 2), b0 @ R
@@ -89,7 +91,7 @@ class GenRegNet(nn.Module):
         fused_a, fused_b = feature_interaction(*features.chunk(2, dim=0))
         offsets = self.decoder(torch.cat([torch.cat([fused_a, a1], -1), torch.cat([fused_b, b1], -1)], 0))
         d_a, d_b = offsets.chunk(2, dim=0)
-        return GenRegOutput(a1 + d_a + c_b, b1 + d_b + c_a, T_a, T_b)
+        return GenRegOutput(a1 + d_a + c_b, b1 + d_b + c_a, T_a, T_b, R)
 
 
 def build_discriminator(cfg: ModelConfig) -> Discriminator:

@@ -27,7 +27,7 @@ class DataConfig:
 
 @dataclass(frozen=True)
 class LossWeights:
-    """Weights of the total loss; the paper: 1, 1, 1, 0.01, 1 (correspondence is our lever, 0 there)."""
+    """Weights of the total loss; the paper: 1, 1, 1, 0.01, 1 (correspondence and tnet are our levers, 0 there)."""
 
     absolute: float = 1.0
     relative: float = 1.0
@@ -35,6 +35,7 @@ class LossWeights:
     adversarial: float = 0.01
     transformation: float = 1.0
     correspondence: float = 0.0
+    tnet: float = 0.0  # our lever: T-Net pose supervision (centred clouds: ideal is R_gt)
 
 
 @dataclass(frozen=True)
@@ -68,6 +69,7 @@ class TrainConfig:
     out_dir: str = "runs/modelnet40"
     seed: int = 0
     threads: int = 2
+    init_from: str | None = None  # warm start: generator weights from this checkpoint (fresh optimiser)
     model: ModelConfig = field(default_factory=ModelConfig)
     pdsac: PDSACConfig = field(default_factory=lambda: PDSACConfig(num_hypotheses=64, temperature=0.01))
     data: DataConfig = field(default_factory=DataConfig)

@@ -66,6 +66,13 @@ def expected_transformation_loss(hypotheses: torch.Tensor, weights: torch.Tensor
     return (weights * transformation_error(hypotheses, T_gt[:, None])).sum(dim=-1)
 
 
+def tnet_pose_loss(T_tnet: torch.Tensor, R_pre: torch.Tensor, T_gt: torch.Tensor) -> torch.Tensor:
+    """|R_tnet R_pre - R_gt|_F + |t_tnet|: on centred clouds the ideal pose normalisation is the
+    ground-truth rotation with no translation. (B, 4, 4), (B, 3, 3), (B, 4, 4) -> (B,)."""
+    R = T_tnet[:, :3, :3] @ R_pre
+    return torch.linalg.norm(R - T_gt[:, :3, :3], dim=(-2, -1)) + torch.linalg.norm(T_tnet[:, :3, 3], dim=-1)
+
+
 def gan_discriminator_loss(real_logits: torch.Tensor, fake_logits: torch.Tensor) -> torch.Tensor:
     """Standard GAN: -E[log D(real)] - E[log(1 - D(fake))]."""
     return F.binary_cross_entropy_with_logits(real_logits, torch.ones_like(real_logits)) + \

@@ -21,7 +21,7 @@ import torch.distributed as dist
 from torch import nn
 from tqdm import tqdm
 
-from genreg_core.checkpoint import save_checkpoint
+from genreg_core.checkpoint import load_checkpoint, save_checkpoint
 from genreg_core.geometry import apply_transform, invert_transform
 from genreg_core.metrics import chamfer_distance, rotation_error_deg
 from genreg_core.model.discriminator import Discriminator
@@ -33,7 +33,7 @@ from genreg_core.training.datasets import build_pair_sets, make_batch, validatio
 
 LOG_FIELDS = (
     "iteration", "generator_steps", "elapsed_s", "lr", "max_angle_deg", "loss", "absolute", "relative",
-    "cycle", "adversarial", "transformation", "correspondence", "discriminator",
+    "cycle", "adversarial", "transformation", "correspondence", "tnet", "discriminator",
     "val_re_mean", "val_re_median", "val_te_mean", "val_cd_mean",
     "val2_re_mean", "val2_re_median", "val2_te_mean", "val2_cd_mean",
 )
@@ -86,6 +86,9 @@ class Trainer:
         self.best_re = math.inf
         if resume and (self.out_dir / "last.ckpt").exists():
             self._load_state(self.out_dir / "last.ckpt")
+        elif cfg.init_from:
+            warm, _ = load_checkpoint(cfg.init_from, num_points=cfg.model.num_points)
+            self.generator.load_state_dict(warm.state_dict())
 
     # ----------------------------------------------------------------- schedule
     def _lr_factor(self, it: int) -> float:
@@ -164,6 +167,10 @@ class Trainer:
             (a_g - apply_transform(T_gt, a)).abs().sum(-1).mean()
             + (b_g - apply_transform(T_inv, b)).abs().sum(-1).mean()
         )
+        terms["tnet"] = (
+            L.tnet_pose_loss(out.tnet_source, out.prealign, T_gt)
+            + L.tnet_pose_loss(out.tnet_target, out.prealign.transpose(1, 2), T_inv)
+        ).mean() if cfg.loss.tnet > 0 else zero
         return terms
 
     def discriminator_update(self, real: torch.Tensor, fake: torch.Tensor) -> float:

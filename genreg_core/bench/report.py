@@ -1,0 +1,302 @@
+"""Benchmark report: per-dataset tables, GenReg confidence analysis, JSON with every pair, PNG plots.
+
+Inputs are the JSON-ready records of `suites.run_benchmark` (one per pair and method, RE in degrees, TE
+and CD in the dataset's units, seconds of wall time). Statistics skip NaN (a method that raised); such
+pairs count as failures in the success rate and are listed in the `errors` column.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from collections.abc import Iterable, Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from scipy.stats import mannwhitneyu
+
+from genreg_core.bench.suites import ALL_METHODS, GENREG_METHODS, BenchRun
+
+DEFAULT_CONFIDENCE_THRESHOLD = 0.5
+
+
+def _nanstat(values: Sequence[float], fn: Any) -> float:
+    v = np.asarray(values, dtype=np.float64)
+    v = v[np.isfinite(v)]
+    return float(fn(v)) if len(v) else float("nan")
+
+
+def method_order(methods: Iterable[str]) -> list[str]:
+    present = set(methods)
+    return [m for m in ALL_METHODS if m in present] + sorted(present - set(ALL_METHODS))
+
+
+def summarize(records: Sequence[dict[str, Any]], cd_floor: Sequence[float] = ()) -> list[dict[str, Any]]:
+    """One row per method of one dataset's records (plus a 'ground truth' row with the CD floor).
+
+    Row: method, pairs, errors, cd, re_mean, re_median, te_mean, te_median, success (fraction), ms_median.
+    """
+    rows = []
+    if len(cd_floor):
+        rows.append({"method": "ground truth", "pairs": len(cd_floor), "errors": 0,
+                     "cd": _nanstat(cd_floor, np.mean), "re_mean": 0.0, "re_median": 0.0, "te_mean": 0.0,
+                     "te_median": 0.0, "success": 1.0, "ms_median": float("nan")})
+    for m in method_order(r["method"] for r in records):
+        rs = [r for r in records if r["method"] == m]
+        col = {k: [r[k] for r in rs] for k in ("cd", "re_deg", "te", "seconds")}
+        rows.append({
+            "method": m, "pairs": len(rs), "errors": sum("error" in r for r in rs),
+            "cd": _nanstat(col["cd"], np.mean),
+            "re_mean": _nanstat(col["re_deg"], np.mean), "re_median": _nanstat(col["re_deg"], np.median),
+            "te_mean": _nanstat(col["te"], np.mean), "te_median": _nanstat(col["te"], np.median),
+            "success": float(np.mean([bool(r["success"]) for r in rs])),
+            "ms_median": 1e3 * _nanstat(col["seconds"], np.median),
+        })
+    return rows
+
+
+def roc_auc(scores: Sequence[float], labels: Sequence[bool]) -> float | None:
+    """Area under the ROC curve of `scores` for positive `labels` (ties count 1/2); None if one class is empty.
+
+    AUC = P(score of a random positive > score of a random negative) = U / (n_pos n_neg), with U the
+    Mann-Whitney statistic of the positives.
+    """
+    s = np.asarray(scores, dtype=np.float64)
+    y = np.asarray(labels, dtype=bool)
+    pos, neg = s[y], s[~y]
+    if len(pos) == 0 or len(neg) == 0:
+        return None
+    return float(mannwhitneyu(pos, neg, alternative="two-sided").statistic / (len(pos) * len(neg)))
+
+
+def confidence_split(
+    scores: Sequence[float], labels: Sequence[bool], threshold: float
+) -> dict[str, Any]:
+    """Success rate (and count) of the pairs with confidence >= threshold and of those below it."""
+    s = np.asarray(scores, dtype=np.float64)
+    y = np.asarray(labels, dtype=bool)
+    above = s >= threshold
+    return {
+        "threshold": threshold, "n_above": int(above.sum()), "n_below": int((~above).sum()),
+        "success_above": float(y[above].mean()) if above.any() else None,
+        "success_below": float(y[~above].mean()) if (~above).any() else None,
+    }
+
+
+def confidence_rows(
+    run: BenchRun, threshold: float = DEFAULT_CONFIDENCE_THRESHOLD
+) -> list[dict[str, Any]]:
+    """Does `RegistrationResult.confidence` separate successes from failures? Per dataset and pooled per kind."""
+    groups: list[tuple[str, str, list[dict[str, Any]]]] = []
+    with_conf = [r for r in run.records if r["method"] in GENREG_METHODS and "confidence" in r]
+    for method in GENREG_METHODS:
+        mine = [r for r in with_conf if r["method"] == method]
+        for name in run.datasets:
+            groups.append((name, method, [r for r in mine if r["dataset"] == name]))
+        for kind in ("object", "scene"):
+            names = {n for n, d in run.datasets.items() if d["kind"] == kind}
+            groups.append((f"all {kind} datasets", method, [r for r in mine if r["dataset"] in names]))
+    rows = []
+    for name, method, rs in groups:
+        if not rs:
+            continue
+        scores = [r["confidence"] for r in rs]
+        labels = [bool(r["success"]) for r in rs]
+        rows.append({"dataset": name, "method": method, "pairs": len(rs), "successes": int(sum(labels)),
+                     "auc": roc_auc(scores, labels), "mean_confidence": float(np.mean(scores)),
+                     **confidence_split(scores, labels, threshold)})
+    return rows
+
+
+def _f(x: float | None, digits: int) -> str:
+    return "–" if x is None or not math.isfinite(x) else f"{x:.{digits}f}"
+
+
+def _pct(x: float | None) -> str:
+    return "–" if x is None or not math.isfinite(x) else f"{100 * x:.0f}%"
+
+
+def dataset_table(rows: Sequence[dict[str, Any]], units: str) -> str:
+    d = 4
+    head = (f"| method | CD ({units}) | RE mean (deg) | RE median (deg) | TE mean ({units}) | "
+            f"TE median ({units}) | success | ms/pair median |")
+    lines = [head, "|" + "---|" * 8]
+    for r in rows:
+        err = f" ({r['errors']} errors)" if r["errors"] else ""
+        lines.append(
+            f"| {r['method']}{err} | {_f(r['cd'], d)} | {_f(r['re_mean'], 2)} | {_f(r['re_median'], 2)} | "
+            f"{_f(r['te_mean'], d)} | {_f(r['te_median'], d)} | {_pct(r['success'])} | {_f(r['ms_median'], 1)} |"
+        )
+    return "\n".join(lines)
+
+
+def markdown(run: BenchRun, threshold: float = DEFAULT_CONFIDENCE_THRESHOLD) -> str:
+    m = run.meta
+    th = m["threads"]
+    ck = m["checkpoints"]
+    out = [
+        f"# GenReg benchmark: suite `{m['suite']}`",
+        "",
+        f"- Date {m['date']}; {m['machine']['cpu_count']} CPUs; torch {m['machine']['torch']}"
+        + (f"; suite wall time {m['wall_seconds']:.0f} s." if "wall_seconds" in m else "."),
+        (f"- **Threads: {th['requested']}** (torch {th['torch']}, OpenMP/Open3D OMP_NUM_THREADS={th['OMP_NUM_THREADS']}"
+        f" with OMP_WAIT_POLICY={th['OMP_WAIT_POLICY']}, small_gicp {th['small_gicp']})."),
+        (f"- Checkpoints: objects `{ck['object']}`, scenes `{ck['scene']}`. `genreg` = network + PDSAC; "
+        "`genreg+icp` = the API's point-to-point ICP refinement after it."),
+        ("- RE: angle of R_est R_gt^T (deg). TE: |t_est - t_gt| in the dataset's units. CD: mean of the two "
+        f"mean nearest-neighbour distances, on at most {m['options']['cd_points']} random points per cloud; "
+        "the `ground truth` row is the CD at the true pose (the floor)."),
+        ("- Success: RE < 5 deg and TE < 0.1 in the unit box; RE < 2 deg and TE < 0.1 m on real (metric) "
+        "frame pairs (TE is taken at the camera origin). `identity` is no registration (the motion in the pairs)."),
+        ("- ms/pair: wall time of one registration at batch 1 (median), each method's preprocessing "
+        "(downsampling, normals, features, resampling) included."),
+    ]
+    for msg in run.skipped:
+        out.append(f"- **Skipped:** {msg}")
+    for name, info in run.datasets.items():
+        rs = [r for r in run.records if r["dataset"] == name]
+        sr = info["success"]
+        out += [
+            "",
+            f"## {info['title']}",
+            "",
+            f"{info['pairs']} of {info['available_pairs']} pairs, {info['points_per_cloud']} points per source "
+            f"cloud, units: {info['units']}; success: RE < {sr['max_re_deg']:g} deg and TE < {sr['max_te']:g}; "
+            f"GenReg checkpoint `{info['checkpoint']}`" + ("" if info["genreg"] else " (missing: GenReg skipped)")
+            + ".",
+            "",
+            dataset_table(summarize(rs, info["cd_floor"]), info["units"]),
+        ]
+    if run.throughput:
+        out += ["", "## GenReg latency (batch 1) and batched throughput", "",
+                ("Network + PDSAC only (`pdsac.register_batch`, as in the API), inputs resampled to the model's N; "
+                "end-to-end batch-1 times are the ms/pair of the tables above."), "",
+                "| datasets | checkpoint | N | batch-1 ms | batch | ms/pair batched | speed-up |",
+                "|---|---|---|---|---|---|---|"]
+        for t in run.throughput:
+            out.append(f"| {t['kind']} | `{t['checkpoint']}` | {t['num_points']} | {t['ms_batch1']:.1f} | {t['batch']} | "
+                       f"{t['ms_per_pair_batched']:.1f} | {t['ms_batch1'] / t['ms_per_pair_batched']:.2f}x |")
+    conf = confidence_rows(run, threshold)
+    if conf:
+        out += ["", "## Confidence: does it separate successes from failures?", "",
+                ("ROC AUC of `RegistrationResult.confidence` for success (1 = perfect, 0.5 = chance, – = only "
+                f"successes or only failures); success rate above and below confidence {threshold:g}."), "",
+                ("| dataset | method | pairs | successes | mean confidence | ROC AUC | success if conf >= t (n) | "
+                "success if conf < t (n) |"), "|---|---|---|---|---|---|---|---|"]
+        for c in conf:
+            out.append(
+                f"| {c['dataset']} | {c['method']} | {c['pairs']} | {c['successes']} | {c['mean_confidence']:.3f} | "
+                f"{_f(c['auc'], 3)} | {_pct(c['success_above'])} ({c['n_above']}) | "
+                f"{_pct(c['success_below'])} ({c['n_below']}) |"
+            )
+    return "\n".join(out) + "\n"
+
+
+def _clean(value: Any) -> Any:
+    """JSON-safe copy: NaN/inf -> None, numpy scalars -> Python."""
+    if isinstance(value, dict):
+        return {str(k): _clean(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_clean(v) for v in value]
+    if isinstance(value, (np.floating, float)):
+        return float(value) if math.isfinite(value) else None
+    if isinstance(value, np.integer):
+        return int(value)
+    if isinstance(value, np.bool_):
+        return bool(value)
+    return value
+
+
+def to_json(run: BenchRun, threshold: float = DEFAULT_CONFIDENCE_THRESHOLD) -> dict[str, Any]:
+    summaries = {
+        name: summarize([r for r in run.records if r["dataset"] == name], info["cd_floor"])
+        for name, info in run.datasets.items()
+    }
+    return _clean({"meta": run.meta, "datasets": run.datasets, "summary": summaries, "skipped": run.skipped,
+                   "throughput": run.throughput, "confidence": confidence_rows(run, threshold),
+                   "records": run.records})
+
+
+def _grid(n: int) -> tuple[Any, list[Any]]:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    cols = min(4, n)
+    rows = math.ceil(n / cols)
+    fig, axes = plt.subplots(rows, cols, figsize=(4.2 * cols, 3.4 * rows), squeeze=False)
+    for ax in axes.flat[n:]:
+        ax.set_visible(False)
+    return fig, list(axes.flat)
+
+
+def _colors(methods: Sequence[str]) -> dict[str, Any]:
+    import matplotlib.pyplot as plt
+
+    cmap = plt.get_cmap("tab10")
+    return {m: cmap(i % 10) for i, m in enumerate(methods)}
+
+
+def plot_re_cdf(run: BenchRun, path: Path) -> Path:
+    """Cumulative distribution of rotation error per method, one panel per dataset (log RE axis)."""
+    import matplotlib.pyplot as plt
+
+    colors = _colors(method_order(r["method"] for r in run.records))
+    fig, axes = _grid(len(run.datasets))
+    for ax, (name, info) in zip(axes, run.datasets.items()):
+        for m, color in colors.items():
+            re = np.sort([r["re_deg"] for r in run.records if r["dataset"] == name and r["method"] == m])
+            if len(re) == 0:
+                continue
+            re = np.where(np.isfinite(re), np.maximum(re, 1e-3), 360.0)  # errors plot as off-scale
+            ax.step(re, np.arange(1, len(re) + 1) / len(re), where="post", label=m, color=color,
+                    linestyle="--" if m == "identity" else "-")
+        ax.axvline(info["success"]["max_re_deg"], color="grey", linewidth=0.8, linestyle=":")
+        ax.set(xscale="log", xlim=(1e-2, 180), ylim=(0, 1), title=name, xlabel="RE (deg)", ylabel="fraction <= RE")
+        ax.grid(alpha=0.3)
+    handles, labels = axes[0].get_legend_handles_labels()
+    fig.legend(handles, labels, loc="lower center", ncol=min(len(labels), 8), frameon=False)
+    fig.tight_layout(rect=(0, 0.06, 1, 1))
+    fig.savefig(path, dpi=90)
+    plt.close(fig)
+    return path
+
+
+def plot_accuracy_time(run: BenchRun, path: Path) -> Path:
+    """Success rate against median ms per pair, one point per method, one panel per dataset."""
+    import matplotlib.pyplot as plt
+
+    colors = _colors(method_order(r["method"] for r in run.records))
+    fig, axes = _grid(len(run.datasets))
+    for ax, (name, info) in zip(axes, run.datasets.items()):
+        rows = summarize([r for r in run.records if r["dataset"] == name])
+        for row in rows:
+            if row["method"] == "identity" or not math.isfinite(row["ms_median"]):
+                continue
+            ax.scatter(row["ms_median"], 100 * row["success"], color=colors[row["method"]], label=row["method"])
+            ax.annotate(row["method"], (row["ms_median"], 100 * row["success"]), fontsize=7,
+                        xytext=(3, 3), textcoords="offset points")
+        ax.set(xscale="log", ylim=(-5, 105), title=name, xlabel="ms per pair (median, batch 1)",
+               ylabel="success (%)")
+        ax.grid(alpha=0.3)
+    fig.suptitle(f"threads: {run.meta['threads']['requested']}")
+    fig.tight_layout()
+    fig.savefig(path, dpi=90)
+    plt.close(fig)
+    return path
+
+
+def write_report(
+    run: BenchRun, out_dir: str | Path, threshold: float = DEFAULT_CONFIDENCE_THRESHOLD
+) -> dict[str, Path]:
+    """Write report.md, results.json, re_cdf.png and accuracy_vs_time.png into out_dir."""
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    paths = {"markdown": out / "report.md", "json": out / "results.json"}
+    paths["markdown"].write_text(markdown(run, threshold))
+    paths["json"].write_text(json.dumps(to_json(run, threshold), indent=1, allow_nan=False))
+    paths["re_cdf"] = plot_re_cdf(run, out / "re_cdf.png")
+    paths["accuracy_vs_time"] = plot_accuracy_time(run, out / "accuracy_vs_time.png")
+    return paths
