@@ -223,7 +223,7 @@ class RegisterNode(Node):
         # A steady clock: diagnostics keep coming when sim time (use_sim_time) stalls.
         self._diag_timer = self.create_timer(
             v["diagnostics.period"], self._publish_diagnostics, clock=Clock(clock_type=ClockType.STEADY_TIME))
-        self.add_on_set_parameters_callback(params.make_validator(self, self._values))
+        self.add_on_set_parameters_callback(params.make_validator(lambda: self._values))
         self.add_post_set_parameters_callback(self._on_params_set)
         self._worker = threading.Thread(target=self._work, name="genreg_worker", daemon=True)
         self._worker.start()
@@ -272,8 +272,6 @@ class RegisterNode(Node):
         if sync_changed:
             with self._lock:
                 self._sync = PairSync(values["sync.slop"], values["sync.queue_size"], values["sync.mode"])
-        if any(p.name == "use_last_result_as_guess" for p in changed):
-            self._last_T = None
 
     # ----------------------------------------------------------------- callbacks (short)
     def _on_cloud(self, topic: str, msg: PointCloud2) -> None:
@@ -371,8 +369,7 @@ class RegisterNode(Node):
         if values["publish_generated"]:
             self._pub_generated.publish(xyz_to_msg(header, result.source_generated))
         t6 = time.perf_counter()
-        if values["use_last_result_as_guess"]:
-            self._last_T = T
+        self._last_T = T  # the start of the next pair when use_last_result_as_guess is set
         latency = time.monotonic() - max(src_cloud.received, tgt_cloud.received)
         overhead = (t1 - t0) + t_tgt + (t6 - t4)
         self._stats.ok(latency, overhead, {

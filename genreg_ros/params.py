@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import fnmatch
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
@@ -242,12 +243,12 @@ def declare(node: Node) -> dict[str, Any]:
     return values
 
 
-def make_validator(node: Node, current: dict[str, Any]):
-    """An on-set-parameters callback that rejects bad values with a reason (types and ranges first
-    go through rclpy's descriptor checks)."""
+def make_validator(current: Callable[[], dict[str, Any]]):
+    """An on-set-parameters callback that rejects bad values with a reason; `current()` gives the values
+    in force (types and ranges first go through rclpy's descriptor checks)."""
 
     def on_set(params: list[Parameter]) -> SetParametersResult:
-        merged = dict(current)
+        merged = dict(current())
         for p in params:
             spec = BY_NAME.get(p.name)
             if spec is None:

@@ -255,6 +255,13 @@ def test_initial_guess_parameter_then_topic(ns, untrained_checkpoint):
         src, tgt, rec = make_pair(BIG_T, 200.0, seed=1)
         h.send(src, tgt)
         check_outputs(*h.wait_output(src.header), rec, src.header, BIG_T)
+        # Tracking: with the parameter cleared, the previous result is the start of the next pair.
+        assert all(r.successful for r in h.node.set_parameters([
+            Parameter("initial_guess", Parameter.Type.DOUBLE_ARRAY, []),
+            Parameter("use_last_result_as_guess", value=True)]))
+        src, tgt, rec = make_pair(BIG_T, 200.5, seed=4)
+        h.send(src, tgt)
+        check_outputs(*h.wait_output(src.header), rec, src.header, BIG_T)
         # The topic overrides the parameter: a different big transform, guessed on the topic only.
         other = transform([-20, 5, -8], [-0.5, 0.2, 0.3])
         guess = TransformStamped(header=Header(frame_id=TGT_FRAME), child_frame_id=SRC_FRAME)
@@ -373,6 +380,11 @@ def test_parameter_validation_at_run_time(ns, untrained_checkpoint):
         assert "rigid" in rejected("initial_guess", [2.0] + [0.0] * 15)
         assert "quaternion" in rejected("initial_guess", [0.0] * 7)
         assert h.node.get_parameter("preprocess.crop_max").value == []  # nothing rejected was applied
+        # Validation merges with the values in force, not the start-up ones.
+        assert h.node.set_parameters_atomically([Parameter("preprocess.crop_min", value=[-9.0, -9.0, -9.0]),
+                                                 Parameter("preprocess.crop_max", value=[9.0, 9.0, 9.0])]).successful
+        assert h.node.set_parameters([Parameter("preprocess.crop_max", value=[8.0, 8.0, 8.0])])[0].successful
+        assert "below" in rejected("preprocess.crop_max", [-10.0, 0.0, 0.0])
         # A valid change takes effect: an 80 ms stamp gap is dropped at slop 0.05 and paired at 0.1.
         h.send(*make_pair(SMALL_T, 600.0, dt=0.08)[:2])
         h.send(*make_pair(SMALL_T, 601.0, dt=0.08)[:2])
