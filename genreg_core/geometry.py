@@ -38,10 +38,21 @@ def invert_transform(T: ArrayLike) -> ArrayLike:
 
 
 def apply_transform(T: ArrayLike, points: ArrayLike) -> ArrayLike:
-    """x' = R x + t for row-stored points; T (..., 4, 4) batches with points (..., N, 3)."""
+    """x' = R x + t for row-stored points; T (..., 4, 4) batches with points (..., N, 3).
+
+    A single numpy cloud is transformed with three broadcast multiply-adds instead of a (N, 3) @ (3, 3)
+    matrix product, which is slow for tall, thin arrays here (about 100 ms at 300k points).
+    """
     R, t = T[..., :3, :3], T[..., :3, 3]
-    Rt = R.transpose(-1, -2) if isinstance(T, torch.Tensor) else np.swapaxes(R, -1, -2)
-    return points @ Rt + t[..., None, :]
+    if isinstance(T, torch.Tensor):
+        return points @ R.transpose(-1, -2) + t[..., None, :]
+    if np.ndim(T) == 2 and np.ndim(points) == 2:
+        R = R.astype(points.dtype, copy=False) if points.dtype.kind == "f" else R
+        out = points[:, 0:1] * R[:, 0] + t.astype(R.dtype)
+        out += points[:, 1:2] * R[:, 1]
+        out += points[:, 2:3] * R[:, 2]
+        return out
+    return points @ np.swapaxes(R, -1, -2) + t[..., None, :]
 
 
 def rotation_angle(R: ArrayLike) -> ArrayLike:
