@@ -23,7 +23,7 @@ import torch
 from genreg_core.checkpoint import load_checkpoint
 from genreg_core.config import RefineConfig, RegistrationConfig
 from genreg_core.errors import InvalidPointCloudError, NonFinitePointsError, TooFewPointsError
-from genreg_core.geometry import apply_transform, denormalize_transform, normalize_pair
+from genreg_core.geometry import apply_transform, denormalize_transform, unit_box_normalization
 from genreg_core.model.genreg import GenRegNet
 from genreg_core.pdsac import register_batch
 
@@ -109,12 +109,17 @@ class Registrar:
         tgt, _ = validate_cloud(target, "target", cfg.min_points)
         init = np.eye(4) if initial_guess is None else _check_transform(initial_guess)
         rng = np.random.default_rng(cfg.seed)
-        src_init = apply_transform(init, src)
-        src_n, tgt_n, _, offset, scale = normalize_pair(src_init, tgt)
-        a_np, b_np = subsample(src_n, self.num_points, rng), subsample(tgt_n, self.num_points, rng)
-        m = cfg.refine.num_points
-        dense_src = src_n if len(src_n) <= m else subsample(src_n, m, rng)
-        dense_tgt = tgt_n if len(tgt_n) <= m else subsample(tgt_n, m, rng)
+        src_init = src if initial_guess is None else apply_transform(init, src)
+        offset, scale = unit_box_normalization(src_init)  # one similarity for both clouds
+
+        def normalized_subset(points: np.ndarray, n: int, keep_all: bool = False) -> np.ndarray:
+            chosen = points if keep_all and len(points) <= n else subsample(points, n, rng)
+            return ((chosen - offset) / scale).astype(np.float32)
+
+        a_np = normalized_subset(src_init, self.num_points)
+        b_np = normalized_subset(tgt, self.num_points)
+        dense_src = normalized_subset(src_init, cfg.refine.num_points, keep_all=True)
+        dense_tgt = normalized_subset(tgt, cfg.refine.num_points, keep_all=True)
         t1 = time.perf_counter()
         device = cfg.device
         a = torch.from_numpy(a_np)[None].to(device)
