@@ -31,6 +31,7 @@ setup(
         "console_scripts": [
             "register_node = genreg_ros.node:main",
             "genreg-train = genreg_core.training.cli:main",
+            "genreg-bench = genreg_core.bench.cli:main",
             "genreg-make-bag = genreg_ros.bag.make_bag:main",
             "genreg-replay = genreg_ros.replay:main",
         ],

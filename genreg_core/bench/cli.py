@@ -46,9 +46,11 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     p.add_argument("--object-points", type=int, default=512, help="points per ModelNet40 cloud (default 512)")
     p.add_argument("--fmr-points", type=int, default=1024, help="points per FMR-style cloud (default 1024)")
     p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--confidence-threshold", type=float, default=0.5)
+    p.add_argument("--confidence-thresholds", type=float, nargs="+", default=[0.5, 0.9],
+                   help="report the success rate above/below these confidences (default 0.5 0.9)")
     p.add_argument("--data-root", help="dataset folder (default: GENREG_DATA or ../shared/data)")
     p.add_argument("--no-progress", action="store_true")
+    p.add_argument("--from-json", help="re-render the report of an earlier run's results.json (no registration)")
     return p.parse_args(argv)
 
 
@@ -58,7 +60,7 @@ def main(argv: list[str] | None = None) -> int:
     import open3d as o3d
 
     o3d.utility.set_verbosity_level(o3d.utility.VerbosityLevel.Error)  # RANSAC's mutual-filter notes
-    from genreg_core.bench.report import write_report
+    from genreg_core.bench.report import load_run, write_report
     from genreg_core.bench.suites import (
         DATASETS,
         DEFAULT_CHECKPOINTS,
@@ -78,6 +80,10 @@ def main(argv: list[str] | None = None) -> int:
     }
     options = BenchOptions(object_points=args.object_points, fmr_points=args.fmr_points, seed=args.seed,
                            threads=args.threads, data_root=args.data_root)
+    if args.from_json:
+        paths = write_report(load_run(args.from_json), args.out, args.confidence_thresholds)
+        print(paths["markdown"].read_text())
+        return 0
     t0 = time.perf_counter()
     try:
         run = run_benchmark(args.suite, checkpoints, options, args.methods, args.datasets, args.max_pairs,
@@ -86,7 +92,7 @@ def main(argv: list[str] | None = None) -> int:
         print(f"genreg-bench: {exc}", file=sys.stderr)
         return 2
     run.meta["wall_seconds"] = time.perf_counter() - t0
-    paths = write_report(run, args.out, args.confidence_threshold)
+    paths = write_report(run, args.out, args.confidence_thresholds)
     print(paths["markdown"].read_text())
     print(f"{args.suite} suite: {run.meta['wall_seconds']:.0f} s with {args.threads} threads; wrote "
           + ", ".join(str(p) for p in paths.values()))

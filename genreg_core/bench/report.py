@@ -18,7 +18,7 @@ from scipy.stats import mannwhitneyu
 
 from genreg_core.bench.suites import ALL_METHODS, GENREG_METHODS, BenchRun
 
-DEFAULT_CONFIDENCE_THRESHOLD = 0.5
+DEFAULT_CONFIDENCE_THRESHOLDS = (0.5, 0.9)
 
 
 def _nanstat(values: Sequence[float], fn: Any) -> float:
@@ -85,9 +85,13 @@ def confidence_split(
 
 
 def confidence_rows(
-    run: BenchRun, threshold: float = DEFAULT_CONFIDENCE_THRESHOLD
+    run: BenchRun, thresholds: Sequence[float] = DEFAULT_CONFIDENCE_THRESHOLDS
 ) -> list[dict[str, Any]]:
-    """Does `RegistrationResult.confidence` separate successes from failures? Per dataset and pooled per kind."""
+    """Does `RegistrationResult.confidence` separate successes from failures? Per dataset and pooled per kind.
+
+    Row: dataset, method, pairs, successes, auc (None: one class only), mean_confidence, splits (one
+    `confidence_split` per threshold).
+    """
     groups: list[tuple[str, str, list[dict[str, Any]]]] = []
     with_conf = [r for r in run.records if r["method"] in GENREG_METHODS and "confidence" in r]
     for method in GENREG_METHODS:
@@ -105,7 +109,7 @@ def confidence_rows(
         labels = [bool(r["success"]) for r in rs]
         rows.append({"dataset": name, "method": method, "pairs": len(rs), "successes": int(sum(labels)),
                      "auc": roc_auc(scores, labels), "mean_confidence": float(np.mean(scores)),
-                     **confidence_split(scores, labels, threshold)})
+                     "splits": [confidence_split(scores, labels, t) for t in thresholds]})
     return rows
 
 
@@ -131,7 +135,7 @@ def dataset_table(rows: Sequence[dict[str, Any]], units: str) -> str:
     return "\n".join(lines)
 
 
-def markdown(run: BenchRun, threshold: float = DEFAULT_CONFIDENCE_THRESHOLD) -> str:
+def markdown(run: BenchRun, thresholds: Sequence[float] = DEFAULT_CONFIDENCE_THRESHOLDS) -> str:
     m = run.meta
     th = m["threads"]
     ck = m["checkpoints"]
@@ -177,19 +181,19 @@ def markdown(run: BenchRun, threshold: float = DEFAULT_CONFIDENCE_THRESHOLD) -> 
         for t in run.throughput:
             out.append(f"| {t['kind']} | `{t['checkpoint']}` | {t['num_points']} | {t['ms_batch1']:.1f} | {t['batch']} | "
                        f"{t['ms_per_pair_batched']:.1f} | {t['ms_batch1'] / t['ms_per_pair_batched']:.2f}x |")
-    conf = confidence_rows(run, threshold)
+    conf = confidence_rows(run, thresholds)
     if conf:
+        split_head = "".join(f" success if conf >= {t:g} (n) | success if conf < {t:g} (n) |" for t in thresholds)
         out += ["", "## Confidence: does it separate successes from failures?", "",
                 ("ROC AUC of `RegistrationResult.confidence` for success (1 = perfect, 0.5 = chance, – = only "
-                f"successes or only failures); success rate above and below confidence {threshold:g}."), "",
-                ("| dataset | method | pairs | successes | mean confidence | ROC AUC | success if conf >= t (n) | "
-                "success if conf < t (n) |"), "|---|---|---|---|---|---|---|---|"]
+                 "successes or only failures), and the success rate above and below fixed confidence thresholds."),
+                "", "| dataset | method | pairs | successes | mean confidence | ROC AUC |" + split_head,
+                "|---" * (6 + 2 * len(thresholds)) + "|"]
         for c in conf:
-            out.append(
-                f"| {c['dataset']} | {c['method']} | {c['pairs']} | {c['successes']} | {c['mean_confidence']:.3f} | "
-                f"{_f(c['auc'], 3)} | {_pct(c['success_above'])} ({c['n_above']}) | "
-                f"{_pct(c['success_below'])} ({c['n_below']}) |"
-            )
+            splits = "".join(f" {_pct(sp['success_above'])} ({sp['n_above']}) | {_pct(sp['success_below'])} "
+                             f"({sp['n_below']}) |" for sp in c["splits"])
+            out.append(f"| {c['dataset']} | {c['method']} | {c['pairs']} | {c['successes']} | "
+                       f"{c['mean_confidence']:.3f} | {_f(c['auc'], 3)} |" + splits)
     return "\n".join(out) + "\n"
 
 
@@ -208,13 +212,13 @@ def _clean(value: Any) -> Any:
     return value
 
 
-def to_json(run: BenchRun, threshold: float = DEFAULT_CONFIDENCE_THRESHOLD) -> dict[str, Any]:
+def to_json(run: BenchRun, thresholds: Sequence[float] = DEFAULT_CONFIDENCE_THRESHOLDS) -> dict[str, Any]:
     summaries = {
         name: summarize([r for r in run.records if r["dataset"] == name], info["cd_floor"])
         for name, info in run.datasets.items()
     }
     return _clean({"meta": run.meta, "datasets": run.datasets, "summary": summaries, "skipped": run.skipped,
-                   "throughput": run.throughput, "confidence": confidence_rows(run, threshold),
+                   "throughput": run.throughput, "confidence": confidence_rows(run, thresholds),
                    "records": run.records})
 
 
@@ -247,7 +251,8 @@ def plot_re_cdf(run: BenchRun, path: Path) -> Path:
     fig, axes = _grid(len(run.datasets))
     for ax, (name, info) in zip(axes, run.datasets.items()):
         for m, color in colors.items():
-            re = np.sort([r["re_deg"] for r in run.records if r["dataset"] == name and r["method"] == m])
+            re = np.sort(np.asarray(
+                [r["re_deg"] for r in run.records if r["dataset"] == name and r["method"] == m], dtype=np.float64))
             if len(re) == 0:
                 continue
             re = np.where(np.isfinite(re), np.maximum(re, 1e-3), 360.0)  # errors plot as off-scale
@@ -265,38 +270,49 @@ def plot_re_cdf(run: BenchRun, path: Path) -> Path:
 
 
 def plot_accuracy_time(run: BenchRun, path: Path) -> Path:
-    """Success rate against median ms per pair, one point per method, one panel per dataset."""
+    """Mean rotation error against median ms per pair (both log), one point per method, one panel per dataset."""
     import matplotlib.pyplot as plt
+    from matplotlib.ticker import NullFormatter
 
     colors = _colors(method_order(r["method"] for r in run.records))
     fig, axes = _grid(len(run.datasets))
-    for ax, (name, info) in zip(axes, run.datasets.items()):
-        rows = summarize([r for r in run.records if r["dataset"] == name])
-        for row in rows:
-            if row["method"] == "identity" or not math.isfinite(row["ms_median"]):
+    for ax, name in zip(axes, run.datasets):
+        for row in summarize([r for r in run.records if r["dataset"] == name]):
+            x, y = row["ms_median"], row["re_mean"]
+            if row["method"] == "identity" or not (math.isfinite(x) and math.isfinite(y)) or x <= 0:
                 continue
-            ax.scatter(row["ms_median"], 100 * row["success"], color=colors[row["method"]], label=row["method"])
-            ax.annotate(row["method"], (row["ms_median"], 100 * row["success"]), fontsize=7,
-                        xytext=(3, 3), textcoords="offset points")
-        ax.set(xscale="log", ylim=(-5, 105), title=name, xlabel="ms per pair (median, batch 1)",
-               ylabel="success (%)")
-        ax.grid(alpha=0.3)
-    fig.suptitle(f"threads: {run.meta['threads']['requested']}")
+            ax.scatter(x, max(y, 1e-3), color=colors[row["method"]])
+            ax.annotate(row["method"], (x, max(y, 1e-3)), fontsize=7, xytext=(3, 3), textcoords="offset points")
+        ax.set(xscale="log", yscale="log", title=name, xlabel="ms per pair (median, batch 1)",
+               ylabel="mean RE (deg)")
+        ax.xaxis.set_minor_formatter(NullFormatter())
+        ax.yaxis.set_minor_formatter(NullFormatter())
+        ax.grid(alpha=0.3, which="both")
+    fig.suptitle(f"Accuracy against time (lower left is better), {run.meta['threads']['requested']} threads")
     fig.tight_layout()
     fig.savefig(path, dpi=90)
     plt.close(fig)
     return path
 
 
+def load_run(path: str | Path) -> BenchRun:
+    """A run back from its results.json (None where the run had NaN), e.g. to re-render the report."""
+    data = json.loads(Path(path).read_text())
+    nan = float("nan")
+    records = [{k: (nan if v is None and k in ("re_deg", "te", "cd", "seconds") else v) for k, v in r.items()}
+               for r in data["records"]]
+    return BenchRun(data["meta"], data["datasets"], records, data["throughput"], data["skipped"])
+
+
 def write_report(
-    run: BenchRun, out_dir: str | Path, threshold: float = DEFAULT_CONFIDENCE_THRESHOLD
+    run: BenchRun, out_dir: str | Path, thresholds: Sequence[float] = DEFAULT_CONFIDENCE_THRESHOLDS
 ) -> dict[str, Path]:
     """Write report.md, results.json, re_cdf.png and accuracy_vs_time.png into out_dir."""
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     paths = {"markdown": out / "report.md", "json": out / "results.json"}
-    paths["markdown"].write_text(markdown(run, threshold))
-    paths["json"].write_text(json.dumps(to_json(run, threshold), indent=1, allow_nan=False))
+    paths["markdown"].write_text(markdown(run, thresholds))
+    paths["json"].write_text(json.dumps(to_json(run, thresholds), indent=1, allow_nan=False))
     paths["re_cdf"] = plot_re_cdf(run, out / "re_cdf.png")
     paths["accuracy_vs_time"] = plot_accuracy_time(run, out / "accuracy_vs_time.png")
     return paths
