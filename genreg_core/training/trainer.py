@@ -86,6 +86,7 @@ class Trainer:
         self.best_re = math.inf
         if resume and (self.out_dir / "last.ckpt").exists():
             self._load_state(self.out_dir / "last.ckpt")
+            self._truncate_log()
         elif cfg.init_from:
             warm, _ = load_checkpoint(cfg.init_from, num_points=cfg.model.num_points)
             self.generator.load_state_dict(warm.state_dict())
@@ -277,6 +278,18 @@ class Trainer:
                 break
         bar.close()
         return val or (self.validate() if self.is_main else {})
+
+    def _truncate_log(self) -> None:
+        """Drop log rows written after the checkpoint we resume from, so the curve has no repeats."""
+        path = self.out_dir / "log.csv"
+        if not self.is_main or not path.exists():
+            return
+        with path.open() as f:
+            rows = list(csv.DictReader(f))
+        with path.open("w", newline="") as f:
+            writer = csv.DictWriter(f, fieldnames=LOG_FIELDS, extrasaction="ignore")
+            writer.writeheader()
+            writer.writerows(r for r in rows if int(r["iteration"]) <= self.iteration)
 
     def _log(self, running: dict[str, float], val: dict[str, float]) -> None:
         if not self.is_main:
