@@ -86,11 +86,14 @@ class ReplayResult:
 
 
 # ----------------------------------------------------------------------------- environment and node process
-def ros_env(domain_id: str | None = None) -> dict[str, str]:
-    """The discovery/transport variables every rclpy process of a replay needs (set in os.environ)."""
+def ros_env(random_domain: bool = True) -> dict[str, str]:
+    """The discovery/transport variables every rclpy process of a replay needs (set in os.environ).
+
+    ROS_DOMAIN_ID is kept if set; otherwise a random one in 1..100 (random_domain, for a node started here)
+    or ROS's default 0 (to reach a running node)."""
     env = {
         "ROS_AUTOMATIC_DISCOVERY_RANGE": "LOCALHOST",
-        "ROS_DOMAIN_ID": domain_id or os.environ.get("ROS_DOMAIN_ID") or str(1 + secrets.randbelow(100)),
+        "ROS_DOMAIN_ID": os.environ.get("ROS_DOMAIN_ID") or (str(1 + secrets.randbelow(100)) if random_domain else "0"),
         "FASTDDS_DEFAULT_PROFILES_FILE": os.environ.get("FASTDDS_DEFAULT_PROFILES_FILE", str(FASTDDS_PROFILE)),
         "RCUTILS_COLORIZED_OUTPUT": "0",
     }
@@ -429,7 +432,7 @@ def _run_icp(bag: BagData, pairs: list[PairResult]) -> None:
 def replay(bags: list[str | Path], options: ReplayOptions) -> ReplayResult:
     """Replay bags (one after the other, pairs never span bags) through register_node and evaluate."""
     log = _printer(options.verbose)
-    ros_env()
+    ros_env(random_domain=not options.connect)
     data = []
     for b in bags:
         bag = read_bag(b)
@@ -441,8 +444,9 @@ def replay(bags: list[str | Path], options: ReplayOptions) -> ReplayResult:
         node_log = options.node_log or (options.report_dir or REPO / "cache" / "replay") / "register_node.log"
         node = NodeProcess(options, Path(node_log))
         log(f"started register_node (pid {node.proc.pid}, log {node_log})")
-    out_rel = "reliable" if options.connect else yaml_param(options.params_file, "qos.publisher_reliability",
-                                                            "reliable")
+    # Best effort matches any publisher; a node started here uses its params file's output QoS.
+    out_rel = "best_effort" if options.connect else yaml_param(options.params_file, "qos.publisher_reliability",
+                                                               "reliable")
     client = None
     try:
         client = Client(options.namespace, options.node_params.get("qos.publisher_reliability", out_rel))
@@ -565,6 +569,10 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
 
 def main(argv: list[str] | None = None) -> int:
     args = parse_args(argv)
+    bad = [kv for kv in args.param if ":=" not in kv]
+    if bad:
+        print(f"genreg-replay: error: -p takes NAME:=VALUE, got {bad[0]!r}", file=sys.stderr)
+        return 2
     options = ReplayOptions(
         gap=args.gap, rate=args.rate, lockstep=args.lockstep, keep_stamps=args.keep_stamps, namespace=args.namespace, connect=args.connect,
         params_file=args.params_file, checkpoint=args.checkpoint,

@@ -120,6 +120,8 @@ def summarize(pairs: list[PairResult], node_counts: dict[str, int], malformed: l
         "icp_te": _stats([e[1] for e in icp_same]),
         "icp_all_re": _stats([e[0] for e in icp_all]),
         "icp_all_te": _stats([e[1] for e in icp_all]),
+        "identity_re": _stats([p.errors(np.eye(4))[0] for p in reg]),
+        "identity_te": _stats([p.errors(np.eye(4))[1] for p in reg]),
         "latency": _stats([p.latency for p in reg]),
         "icp_seconds": _stats([p.icp_seconds for p in pairs]),
         "header_problems": sum(1 for p in reg if p.header_problems),
@@ -253,7 +255,8 @@ def write_report(
     md += ["", "## Accuracy", "", "| | pairs | RE mean | RE median | RE p95 | TE mean | TE median | TE p95 |",
            "|---|---|---|---|---|---|---|---|"]
     for name, re_key, te_key in (("GenReg node", "re", "te"), ("ICP, same pairs", "icp_re", "icp_te"),
-                                 ("ICP, all pairs", "icp_all_re", "icp_all_te")):
+                                 ("ICP, all pairs", "icp_all_re", "icp_all_te"),
+                                 ("no motion (identity), same pairs", "identity_re", "identity_te")):
         r, t = summary[re_key], summary[te_key]
         md.append(f"| {name} | {r['n']} | {r['mean']:.3f} deg | {r['median']:.3f} deg | {r['p95']:.3f} deg | "
                   f"{t['mean'] * 1e3:.2f} mm | {t['median'] * 1e3:.2f} mm | {t['p95'] * 1e3:.2f} mm |")
