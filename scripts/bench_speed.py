@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import sys
 from pathlib import Path
 
@@ -57,8 +58,10 @@ def main() -> int:
         return 1e3 * float(np.median(xs))
 
     threads = thread_report(args.threads)
+    load_start = os.getloadavg()[0]
     print(f"threads: {args.threads} (torch {threads['torch']}, OMP_NUM_THREADS={threads['OMP_NUM_THREADS']}, "
-          f"OMP_WAIT_POLICY={threads['OMP_WAIT_POLICY']}); {args.repeats} pairs per N, batch 1, medians")
+          f"OMP_WAIT_POLICY={threads['OMP_WAIT_POLICY']}); {args.repeats} pairs per N, batch 1, medians; "
+          f"1-min load average {load_start:.1f} on {os.cpu_count()} CPUs (other jobs included)")
 
     def registrar(n: int) -> Registrar:
         torch.manual_seed(0)
@@ -122,10 +125,13 @@ def main() -> int:
           f"{total:.0f} ms end to end ({split}); goal < {GOAL_S_FRAME * 1e3:.0f} ms: "
           f"{'met' if total < GOAL_S_FRAME * 1e3 else 'missed'}. Same pair: ICP p2p (2 cm voxels) {med(f_icp):.0f} ms, "
           f"FPFH+RANSAC (5 cm voxels) {med(f_ransac):.0f} ms.")
+    print(f"1-min load average at the end: {os.getloadavg()[0]:.1f}")
     if args.json:
         frame_row = {"points": [len(src), len(tgt)], "N": n_frame, **{f"{k}_ms": med(v) for k, v in frame.items()},
                      "icp_ms": med(f_icp), "fpfh_ransac_ms": med(f_ransac)}
-        Path(args.json).write_text(json.dumps({"threads": threads, "rows": rows, "frame_pair": frame_row}, indent=1))
+        load = {"start": load_start, "end": os.getloadavg()[0]}
+        Path(args.json).write_text(json.dumps({"threads": threads, "load_average": load, "rows": rows,
+                                               "frame_pair": frame_row}, indent=1))
     return 0
 
 
