@@ -21,7 +21,10 @@ setup(
         (f"share/{PACKAGE}/config", glob("config/*.yaml") + glob("config/*.xml")),
         (f"share/{PACKAGE}/launch", glob("launch/*.launch.py")),
     ],
-    install_requires=["setuptools", "numpy", "scipy", "torch", "open3d", "pyyaml", "tqdm", "pillow"],
+    install_requires=[
+        "setuptools", "numpy", "scipy", "torch", "open3d", "small_gicp", "rosbags", "pyyaml", "tqdm", "pillow",
+        "matplotlib",
+    ],
     zip_safe=False,
     maintainer="genreg developers",
     maintainer_email="genreg@example.com",
