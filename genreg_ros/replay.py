@@ -491,7 +491,8 @@ def _title(data: list[BagData], options: ReplayOptions) -> str:
         f = b.frame_numbers
         names.append(f"{b.info.get('sequence', Path(b.path).name)} {f[0]}-{f[-1]}")
     mode = "lockstep" if options.lockstep else f"rate {options.rate:g}x" if options.rate else "as fast as possible"
-    model = options.checkpoint or yaml_param(options.params_file, "model.checkpoint", "?")
+    model = "of the running node" if options.connect else (
+        options.checkpoint or yaml_param(options.params_file, "model.checkpoint", "?"))
     return f"genreg replay: {', '.join(names)} | gap {options.gap} | {mode} | model {model}"
 
 
