@@ -43,6 +43,7 @@ class ModelConfig:
     center_inputs: bool = True  # subtract each cloud's centroid before the network
     prealign: str = "none"  # "none" or "pca": classical PCA pre-rotation, the net learns the residual
     norm: str = "group"  # normalisation in the point MLPs: "none" or "group"
+    interaction: str = "global"  # "global": the paper's FI; "local": also each point's nearest neighbour
 
     def __post_init__(self) -> None:
         _check(self.num_points >= 32, "model.num_points must be >= 32")
@@ -51,6 +52,7 @@ class ModelConfig:
         _check(len(self.decoder_channels) == 3, "model.decoder_channels needs three widths")
         _check(self.prealign in ("none", "pca"), "model.prealign must be 'none' or 'pca'")
         _check(self.norm in ("none", "group"), "model.norm must be 'none' or 'group'")
+        _check(self.interaction in ("global", "local"), "model.interaction must be 'global' or 'local'")
 
 
 @dataclass(frozen=True)

@@ -85,3 +85,17 @@ def test_checkpoint_round_trip_and_errors(tmp_path):
         load_checkpoint(tmp_path / "bad.pt")
     with pytest.raises(CheckpointError, match="N=64"):
         load_checkpoint(path, num_points=512)
+
+
+def test_local_interaction_sees_the_nearest_neighbour_offset():
+    from genreg_core.model.genreg import nearest_neighbour_context
+
+    pts = torch.tensor([[[0.0, 0.0, 0.0], [1.0, 0.0, 0.0]]])
+    other = torch.tensor([[[1.1, 0.0, 0.0], [0.0, 0.2, 0.0], [5.0, 5.0, 5.0]]])
+    feats = torch.tensor([[[1.0], [2.0], [3.0]]])
+    ctx = nearest_neighbour_context(pts, other, feats)
+    assert torch.allclose(ctx[0, 0], torch.tensor([0.0, 0.2, 0.0, 2.0]))
+    assert torch.allclose(ctx[0, 1], torch.tensor([0.1, 0.0, 0.0, 1.0]))
+    net = GenRegNet(ModelConfig(**{**SMALL.__dict__, "interaction": "local"})).eval()
+    out = net(torch.rand(2, 64, 3), torch.rand(2, 64, 3))
+    assert out.source_generated.shape == (2, 64, 3)

@@ -8,6 +8,11 @@ Generation, column convention: with c_A, c_B the centroids (if `center_inputs`),
 PCA pre-rotation and T_a the T-Net transform,
     A_g,i = T_a (R_pre (A_i - c_A)) + d_A,i + c_B,
 where d_A,i is the decoder's output for point i. B_g is symmetric (R_pre^T, T_b, c_A).
+
+The decoder sees [F_A,i, G_B - G_A, x_i] (the paper's feature interaction, `interaction="global"`); with
+`interaction="local"` (our lever) also the offset from x_i to its nearest neighbour in the other
+cloud and that neighbour's feature, so it can learn a correspondence step instead of regressing the
+whole pose from global features.
 """
 
 from __future__ import annotations
@@ -54,6 +59,19 @@ class PointMixerEncoder(nn.Module):
         return self.mixer2(self.mixer1(self.gcnn(points)))
 
 
+def nearest_neighbour_context(
+    points: torch.Tensor, other: torch.Tensor, other_features: torch.Tensor
+) -> torch.Tensor:
+    """Local interaction: for each point, the offset to its nearest neighbour in the other cloud (both in
+    the other cloud's centred frame) and that neighbour's feature. (B, N, 3), (B, M, 3), (B, M, C) ->
+    (B, N, 3 + C). The neighbour index is not differentiated; the offset is."""
+    with torch.no_grad():
+        idx = torch.cdist(points, other).argmin(dim=-1)  # (B, N)
+    nn_points = torch.gather(other, 1, idx[..., None].expand(-1, -1, 3))
+    nn_features = torch.gather(other_features, 1, idx[..., None].expand(-1, -1, other_features.shape[-1]))
+    return torch.cat([nn_points - points, nn_features], dim=-1)
+
+
 def feature_interaction(f_a: torch.Tensor, f_b: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """FI module: max-pool each cloud's features to G_A, G_B and append the difference of the other
     cloud's global feature and one's own to every point: [F_A, G_B - G_A] and [F_B, G_A - G_B]."""
@@ -72,7 +90,8 @@ class GenRegNet(nn.Module):
         self.config = cfg or ModelConfig()
         self.tnet = TNet(self.config)
         self.encoder = PointMixerEncoder(self.config)
-        self.decoder = Decoder(2 * self.config.feature_dim + 3, self.config.decoder_channels)
+        local = 3 + self.config.feature_dim if self.config.interaction == "local" else 0
+        self.decoder = Decoder(2 * self.config.feature_dim + 3 + local, self.config.decoder_channels)
 
     def forward(self, a: torch.Tensor, b: torch.Tensor) -> GenRegOutput:
         cfg = self.config
@@ -88,8 +107,15 @@ class GenRegNet(nn.Module):
         T_a, T_b = self.tnet(a0, b0)
         a1, b1 = apply_transform(T_a, a0), apply_transform(T_b, b0)
         features = self.encoder(torch.cat([a1, b1], dim=0))
-        fused_a, fused_b = feature_interaction(*features.chunk(2, dim=0))
-        offsets = self.decoder(torch.cat([torch.cat([fused_a, a1], -1), torch.cat([fused_b, b1], -1)], 0))
+        f_a, f_b = features.chunk(2, dim=0)
+        fused_a, fused_b = feature_interaction(f_a, f_b)
+        inputs_a, inputs_b = [fused_a, a1], [fused_b, b1]
+        if cfg.interaction == "local":
+            # a1 lives in B's centred frame (b0), b1 in A's (a0); the encoder saw b1 and a1, so the
+            # neighbour features come from the clouds as encoded, indexed by position in the other frame.
+            inputs_a.append(nearest_neighbour_context(a1, b0, f_b))
+            inputs_b.append(nearest_neighbour_context(b1, a0, f_a))
+        offsets = self.decoder(torch.cat([torch.cat(inputs_a, -1), torch.cat(inputs_b, -1)], 0))
         d_a, d_b = offsets.chunk(2, dim=0)
         return GenRegOutput(a1 + d_a + c_b, b1 + d_b + c_a, T_a, T_b, R)
 
