@@ -27,6 +27,7 @@ from rclpy.node import Node
 from rclpy.parameter import Parameter
 from scipy.spatial.transform import Rotation
 
+from genreg_core.config import PDSACConfig, RefineConfig, RegistrationConfig
 from genreg_ros.sync import MODES
 
 DOUBLE_ARRAY = "double_array"
@@ -60,6 +61,10 @@ class Spec:
         return self.type if self.type is not None else type(self.default)
 
 
+# Registration defaults come from the core's config (one place); the node's own choices are written here:
+# it refines with ICP by default (the core's default is no refinement) and runs more ICP iterations.
+_PDSAC, _REFINE, _REG = PDSACConfig(), RefineConfig(), RegistrationConfig()
+
 SPECS: tuple[Spec, ...] = (
     Spec("model.checkpoint", "modelnet40", "Shipped model name (modelnet40, 7scenes) or a .pt checkpoint path.",
          read_only=True),
@@ -67,19 +72,19 @@ SPECS: tuple[Spec, ...] = (
     Spec("model.num_points", 0, "Expected model N (points per cloud fed to the network); 0 accepts the "
          "checkpoint's N.", low=0, high=65536, read_only=True),
     Spec("model.num_threads", 0, "Torch CPU threads; 0 keeps torch's default.", low=0, high=256, read_only=True),
-    Spec("pdsac.num_hypotheses", 256, "PDSAC hypotheses m drawn per registration.", low=1, high=100000),
-    Spec("pdsac.sample_size", 4, "PDSAC correspondences k per minimal set.", low=3, high=64),
-    Spec("pdsac.inlier_threshold", 0.05, "PDSAC inlier residual, unit-box units.", low=1e-6, high=1.0),
+    Spec("pdsac.num_hypotheses", _PDSAC.num_hypotheses, "PDSAC hypotheses m drawn per registration.", low=1, high=100000),
+    Spec("pdsac.sample_size", _PDSAC.sample_size, "PDSAC correspondences k per minimal set.", low=3, high=64),
+    Spec("pdsac.inlier_threshold", _PDSAC.inlier_threshold, "PDSAC inlier residual, unit-box units.", low=1e-6, high=1.0),
     Spec("refine.method", "point_to_point", "ICP refinement after PDSAC.",
          choices=("none", "point_to_point", "point_to_plane")),
     Spec("refine.max_iterations", 20, "ICP iterations.", low=1, high=1000),
-    Spec("refine.max_correspondence_distance", 0.05, "ICP correspondence distance, unit-box units.",
+    Spec("refine.max_correspondence_distance", _REFINE.max_correspondence_distance, "ICP correspondence distance, unit-box units.",
          low=1e-6, high=1.0),
-    Spec("refine.num_points", 5000, "Points per cloud used by ICP and the fitness measure.", low=16,
+    Spec("refine.num_points", _REFINE.num_points, "Points per cloud used by ICP and the fitness measure.", low=16,
          high=1_000_000),
-    Spec("registration.passes", 1, "Network + PDSAC passes; each registers the residual of the previous.",
+    Spec("registration.passes", _REG.passes, "Network + PDSAC passes; each registers the residual of the previous.",
          low=1, high=10),
-    Spec("registration.min_points", 32, "Clouds with fewer finite points (after preprocessing) fail.", low=4,
+    Spec("registration.min_points", _REG.min_points, "Clouds with fewer finite points (after preprocessing) fail.", low=4,
          high=1_000_000),
     Spec("registration.seed", 0, "Random seed of subsampling and PDSAC; -1 draws fresh randomness each time.",
          low=-1, high=2**31 - 1),
