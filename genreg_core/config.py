@@ -43,7 +43,9 @@ class ModelConfig:
     center_inputs: bool = True  # subtract each cloud's centroid before the network
     prealign: str = "none"  # "none" or "pca": classical PCA pre-rotation, the net learns the residual
     norm: str = "group"  # normalisation in the point MLPs: "none" or "group"
-    interaction: str = "global"  # "global": the paper's FI; "local": also each point's nearest neighbour
+    interaction: str = "global"  # "global": the paper's FI; "local": + nearest neighbour; "attention": soft pointer
+    attention_dim: int = 64  # query/key width of the "attention" interaction
+    attention_sigma: float = 0.05  # initial width of its distance kernel, unit-box units (learned)
 
     def __post_init__(self) -> None:
         _check(self.num_points >= 32, "model.num_points must be >= 32")
@@ -52,7 +54,8 @@ class ModelConfig:
         _check(len(self.decoder_channels) == 3, "model.decoder_channels needs three widths")
         _check(self.prealign in ("none", "pca"), "model.prealign must be 'none' or 'pca'")
         _check(self.norm in ("none", "group"), "model.norm must be 'none' or 'group'")
-        _check(self.interaction in ("global", "local"), "model.interaction must be 'global' or 'local'")
+        _check(self.interaction in ("global", "local", "attention"),
+               "model.interaction must be 'global', 'local' or 'attention'")
 
 
 @dataclass(frozen=True)

@@ -99,3 +99,16 @@ def test_local_interaction_sees_the_nearest_neighbour_offset():
     net = GenRegNet(ModelConfig(**{**SMALL.__dict__, "interaction": "local"})).eval()
     out = net(torch.rand(2, 64, 3), torch.rand(2, 64, 3))
     assert out.source_generated.shape == (2, 64, 3)
+
+
+def test_attention_interaction_generates_convex_combinations_of_the_other_cloud():
+    """Untrained (zero decoder, identity T-Net): A_g - c_B is a weighted mean of B's centred points."""
+    torch.manual_seed(0)
+    net = GenRegNet(ModelConfig(**{**SMALL.__dict__, "interaction": "attention"})).eval()
+    a, b = torch.rand(2, 64, 3), torch.rand(2, 64, 3) * 2.0
+    with torch.no_grad():
+        out = net(a, b)
+    centred = out.source_generated - b.mean(1, keepdim=True)
+    b0 = b - b.mean(1, keepdim=True)
+    assert (centred >= b0.amin(1, keepdim=True) - 1e-5).all() and (centred <= b0.amax(1, keepdim=True) + 1e-5).all()
+    assert out.source_generated.shape == (2, 64, 3)

@@ -9,10 +9,12 @@ PCA pre-rotation and T_a the T-Net transform,
     A_g,i = T_a (R_pre (A_i - c_A)) + d_A,i + c_B,
 where d_A,i is the decoder's output for point i. B_g is symmetric (R_pre^T, T_b, c_A).
 
-The decoder sees [F_A,i, G_B - G_A, x_i] (the paper's feature interaction, `interaction="global"`); with
-`interaction="local"` (our lever) also the offset from x_i to its nearest neighbour in the other
-cloud and that neighbour's feature, so it can learn a correspondence step instead of regressing the
-whole pose from global features.
+The decoder sees [F_A,i, G_B - G_A, x_i] (the paper's feature interaction, `interaction="global"`).
+Our levers, measured against it: `"local"` adds the offset from x_i to its nearest neighbour in the
+other cloud and that neighbour's feature; `"attention"` (RPM-Net-like soft pointer) encodes both clouds in
+B's centred frame and generates A_g,i = sum_j w_ij B_j + d_A,i + c_B with
+w_ij = softmax_j(q_i . k_j / sqrt(d) - |x_i - B_j|^2 / (2 sigma^2)), sigma learned, so that the network
+learns local correspondences instead of regressing the whole pose from global features.
 """
 
 from __future__ import annotations
@@ -72,6 +74,23 @@ def nearest_neighbour_context(
     return torch.cat([nn_points - points, nn_features], dim=-1)
 
 
+class SoftPointer(nn.Module):
+    """Attention of each point onto the other cloud's points (both in one frame): learned feature
+    similarity minus a Gaussian distance kernel of learned width. Returns the weighted mean point."""
+
+    def __init__(self, channels: int, dim: int, sigma: float) -> None:
+        super().__init__()
+        self.query = nn.Linear(channels, dim)
+        self.key = nn.Linear(channels, dim)
+        self.log_sigma = nn.Parameter(torch.tensor(float(sigma)).log())
+        self.scale = dim ** -0.5
+
+    def forward(self, x: torch.Tensor, f_x: torch.Tensor, y: torch.Tensor, f_y: torch.Tensor) -> torch.Tensor:
+        logits = (self.query(f_x) @ self.key(f_y).transpose(1, 2)) * self.scale
+        logits = logits - torch.cdist(x, y).square() / (2.0 * self.log_sigma.exp().square())
+        return torch.softmax(logits, dim=-1) @ y
+
+
 def feature_interaction(f_a: torch.Tensor, f_b: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """FI module: max-pool each cloud's features to G_A, G_B and append the difference of the other
     cloud's global feature and one's own to every point: [F_A, G_B - G_A] and [F_B, G_A - G_B]."""
@@ -90,8 +109,10 @@ class GenRegNet(nn.Module):
         self.config = cfg or ModelConfig()
         self.tnet = TNet(self.config)
         self.encoder = PointMixerEncoder(self.config)
-        local = 3 + self.config.feature_dim if self.config.interaction == "local" else 0
-        self.decoder = Decoder(2 * self.config.feature_dim + 3 + local, self.config.decoder_channels)
+        extra = {"global": 0, "local": 3 + self.config.feature_dim, "attention": 3}[self.config.interaction]
+        self.decoder = Decoder(2 * self.config.feature_dim + 3 + extra, self.config.decoder_channels)
+        if self.config.interaction == "attention":
+            self.pointer = SoftPointer(self.config.feature_dim, self.config.attention_dim, self.config.attention_sigma)
 
     def forward(self, a: torch.Tensor, b: torch.Tensor) -> GenRegOutput:
         cfg = self.config
@@ -106,6 +127,8 @@ class GenRegNet(nn.Module):
             a0, b0 = a0 @ R.transpose(1, 2), b0 @ R
         T_a, T_b = self.tnet(a0, b0)
         a1, b1 = apply_transform(T_a, a0), apply_transform(T_b, b0)
+        if cfg.interaction == "attention":
+            return self._attention_forward(a1, b1, a0, b0, c_a, c_b, T_a, T_b, R)
         features = self.encoder(torch.cat([a1, b1], dim=0))
         f_a, f_b = features.chunk(2, dim=0)
         fused_a, fused_b = feature_interaction(f_a, f_b)
@@ -118,6 +141,22 @@ class GenRegNet(nn.Module):
         offsets = self.decoder(torch.cat([torch.cat(inputs_a, -1), torch.cat(inputs_b, -1)], 0))
         d_a, d_b = offsets.chunk(2, dim=0)
         return GenRegOutput(a1 + d_a + c_b, b1 + d_b + c_a, T_a, T_b, R)
+
+
+    def _attention_forward(
+        self, a1: torch.Tensor, b1: torch.Tensor, a0: torch.Tensor, b0: torch.Tensor, c_a: torch.Tensor,
+        c_b: torch.Tensor, T_a: torch.Tensor, T_b: torch.Tensor, R: torch.Tensor,
+    ) -> GenRegOutput:
+        """Soft-pointer generation: A_g from (a1, b0), both in B's centred frame; B_g from (b1, a0)."""
+        f_a1, f_b0, f_b1, f_a0 = self.encoder(torch.cat([a1, b0, b1, a0], dim=0)).chunk(4, dim=0)
+        soft_a = self.pointer(a1, f_a1, b0, f_b0)
+        soft_b = self.pointer(b1, f_b1, a0, f_a0)
+        fused_a, _ = feature_interaction(f_a1, f_b0)
+        fused_b, _ = feature_interaction(f_b1, f_a0)
+        offsets = self.decoder(torch.cat([
+            torch.cat([fused_a, a1, soft_a - a1], -1), torch.cat([fused_b, b1, soft_b - b1], -1)], 0))
+        d_a, d_b = offsets.chunk(2, dim=0)
+        return GenRegOutput(soft_a + d_a + c_b, soft_b + d_b + c_a, T_a, T_b, R)
 
 
 def build_discriminator(cfg: ModelConfig) -> Discriminator:
