@@ -40,7 +40,8 @@ def test_generation_is_per_point_and_shapes_are_right():
     a, b = torch.rand(2, 64, 3), torch.rand(2, 64, 3)
     out = net(a, b)
     assert out.source_generated.shape == (2, 64, 3) and out.target_generated.shape == (2, 64, 3)
-    assert out.tnet_source.shape == (2, 4, 4)
+    assert out.tnet.shape == (2, 4, 4)
+    assert torch.allclose(out.target_generated, b - b.mean(1, keepdim=True) + a.mean(1, keepdim=True), atol=1e-5)
     # Untrained (zero-initialised last layers): A_g is A moved by B's centroid minus A's centroid.
     shift = b.mean(1, keepdim=True) - a.mean(1, keepdim=True)
     assert torch.allclose(out.source_generated, a + shift, atol=1e-5)
@@ -112,3 +113,22 @@ def test_attention_interaction_generates_convex_combinations_of_the_other_cloud(
     b0 = b - b.mean(1, keepdim=True)
     assert (centred >= b0.amin(1, keepdim=True) - 1e-5).all() and (centred <= b0.amax(1, keepdim=True) + 1e-5).all()
     assert out.source_generated.shape == (2, 64, 3)
+
+
+def test_both_generated_clouds_are_in_the_other_frame_with_pca_prealignment():
+    """Untrained (identity T-Net, zero decoder): A_g = R_pre (A - c_A) + c_B and B_g = R_pre^T (B - c_B) + c_A,
+    so PDSAC on both directions recovers the same transform (B_g is mapped back with the inverse)."""
+    rng = np.random.default_rng(0)
+    shape = rng.normal(size=(64, 3)) * np.array([3.0, 1.5, 0.5])
+    shape[:, 0] += 0.3 * shape[:, 0] ** 2
+    T = random_transform(rng, 40, 0.5)
+    a = torch.tensor(shape, dtype=torch.float32)[None]
+    b = torch.tensor(apply_transform(T, shape), dtype=torch.float32)[None]
+    net = GenRegNet(ModelConfig(**{**SMALL.__dict__, "prealign": "pca"})).eval()
+    with torch.no_grad():
+        out = net(a, b)
+    R = out.prealign[0]
+    c_a, c_b = a.mean(1), b.mean(1)
+    assert torch.allclose(out.source_generated[0], (a[0] - c_a) @ R.T + c_b, atol=1e-5)
+    assert torch.allclose(out.target_generated[0], (b[0] - c_b) @ R + c_a, atol=1e-5)
+    assert torch.allclose(R, torch.tensor(T[:3, :3], dtype=torch.float32), atol=1e-3)

@@ -4,17 +4,19 @@ interaction and decoder. The discriminator lives beside it and is used only in t
 Frames: A (source) and B (target) are (B, N, 3) clouds in their own frames. The network generates
 A_g, point i of A expressed in B's frame, and B_g, point i of B expressed in A's frame.
 
-Generation, column convention: with c_A, c_B the centroids (if `center_inputs`), R_pre the optional
-PCA pre-rotation and T_a the T-Net transform,
-    A_g,i = T_a (R_pre (A_i - c_A)) + d_A,i + c_B,
-where d_A,i is the decoder's output for point i. B_g is symmetric (R_pre^T, T_b, c_A).
+Generation, column convention. With c_A, c_B the centroids (if `center_inputs`), R_pre the optional
+PCA pre-rotation and T the T-Net transform, only A is moved, into B's centred frame (as in the paper,
+the T-Net transforms one of the clouds):
+    A_1 = T R_pre (A - c_A),   M = T [R_pre | 0]  (the network's centred estimate of A -> B),
+so A_1 and B_0 = B - c_B share one frame, where the encoder, the feature interaction and the decoder
+compare them. The decoder's per-point outputs d_A, d_B give
+    A_g = A_1 + d_A + c_B            (A in B's frame; point i from point i)
+    B_g = M^-1 (B_0 + d_B) + c_A     (B in A's frame).
 
-The decoder sees [F_A,i, G_B - G_A, x_i] (the paper's feature interaction, `interaction="global"`).
+The decoder sees [F_i, G_other - G_own, x_i] (the paper's feature interaction, `interaction="global"`).
 Our levers, measured against it: `"local"` adds the offset from x_i to its nearest neighbour in the
-other cloud and that neighbour's feature; `"attention"` (RPM-Net-like soft pointer) encodes both clouds in
-B's centred frame and generates A_g,i = sum_j w_ij B_j + d_A,i + c_B with
-w_ij = softmax_j(q_i . k_j / sqrt(d) - |x_i - B_j|^2 / (2 sigma^2)), sigma learned, so that the network
-learns local correspondences instead of regressing the whole pose from global features.
+other cloud and that neighbour's feature; `"attention"` (RPM-Net-like soft pointer) generates from
+sum_j w_ij y_j, w_ij = softmax_j(q_i . k_j / sqrt(d) - |x_i - y_j|^2 / (2 sigma^2)), sigma learned.
 """
 
 from __future__ import annotations
@@ -25,7 +27,7 @@ import torch
 from torch import nn
 
 from genreg_core.config import ModelConfig
-from genreg_core.geometry import apply_transform
+from genreg_core.geometry import apply_transform, invert_transform
 from genreg_core.model.decoder import Decoder
 from genreg_core.model.discriminator import Discriminator
 from genreg_core.model.gcnn import EdgeConv
@@ -41,9 +43,8 @@ class GenRegOutput:
 
     source_generated: torch.Tensor  # A_g (B, N, 3), in B's frame
     target_generated: torch.Tensor  # B_g (B, N, 3), in A's frame
-    tnet_source: torch.Tensor  # (B, 4, 4) T-Net transform of centred A, after the pre-rotation
-    tnet_target: torch.Tensor  # (B, 4, 4)
-    prealign: torch.Tensor  # (B, 3, 3) pre-rotation of centred A (identity when off); B gets its transpose
+    tnet: torch.Tensor  # (B, 4, 4) T-Net transform of centred, pre-rotated A into B's centred frame
+    prealign: torch.Tensor  # (B, 3, 3) pre-rotation of centred A (identity when off)
 
 
 class PointMixerEncoder(nn.Module):
@@ -124,39 +125,26 @@ class GenRegNet(nn.Module):
         R = torch.eye(3, dtype=a.dtype, device=a.device).expand(a.shape[0], 3, 3)
         if cfg.prealign == "pca":
             R = pca_prealign(a0, b0)
-            a0, b0 = a0 @ R.transpose(1, 2), b0 @ R
-        T_a, T_b = self.tnet(a0, b0)
-        a1, b1 = apply_transform(T_a, a0), apply_transform(T_b, b0)
-        if cfg.interaction == "attention":
-            return self._attention_forward(a1, b1, a0, b0, c_a, c_b, T_a, T_b, R)
-        features = self.encoder(torch.cat([a1, b1], dim=0))
-        f_a, f_b = features.chunk(2, dim=0)
+        a_pre = a0 @ R.transpose(1, 2)
+        T = self.tnet(a_pre, b0)
+        a1 = apply_transform(T, a_pre)  # A in B's centred frame
+        M = T.clone()
+        M[:, :3, :3] = T[:, :3, :3] @ R
+        f_a, f_b = self.encoder(torch.cat([a1, b0], dim=0)).chunk(2, dim=0)
         fused_a, fused_b = feature_interaction(f_a, f_b)
-        inputs_a, inputs_b = [fused_a, a1], [fused_b, b1]
+        inputs_a, inputs_b = [fused_a, a1], [fused_b, b0]
+        base_a, base_b = a1, b0
         if cfg.interaction == "local":
-            # a1 lives in B's centred frame (b0), b1 in A's (a0); the encoder saw b1 and a1, so the
-            # neighbour features come from the clouds as encoded, indexed by position in the other frame.
             inputs_a.append(nearest_neighbour_context(a1, b0, f_b))
-            inputs_b.append(nearest_neighbour_context(b1, a0, f_a))
+            inputs_b.append(nearest_neighbour_context(b0, a1, f_a))
+        elif cfg.interaction == "attention":
+            base_a, base_b = self.pointer(a1, f_a, b0, f_b), self.pointer(b0, f_b, a1, f_a)
+            inputs_a.append(base_a - a1)
+            inputs_b.append(base_b - b0)
         offsets = self.decoder(torch.cat([torch.cat(inputs_a, -1), torch.cat(inputs_b, -1)], 0))
         d_a, d_b = offsets.chunk(2, dim=0)
-        return GenRegOutput(a1 + d_a + c_b, b1 + d_b + c_a, T_a, T_b, R)
-
-
-    def _attention_forward(
-        self, a1: torch.Tensor, b1: torch.Tensor, a0: torch.Tensor, b0: torch.Tensor, c_a: torch.Tensor,
-        c_b: torch.Tensor, T_a: torch.Tensor, T_b: torch.Tensor, R: torch.Tensor,
-    ) -> GenRegOutput:
-        """Soft-pointer generation: A_g from (a1, b0), both in B's centred frame; B_g from (b1, a0)."""
-        f_a1, f_b0, f_b1, f_a0 = self.encoder(torch.cat([a1, b0, b1, a0], dim=0)).chunk(4, dim=0)
-        soft_a = self.pointer(a1, f_a1, b0, f_b0)
-        soft_b = self.pointer(b1, f_b1, a0, f_a0)
-        fused_a, _ = feature_interaction(f_a1, f_b0)
-        fused_b, _ = feature_interaction(f_b1, f_a0)
-        offsets = self.decoder(torch.cat([
-            torch.cat([fused_a, a1, soft_a - a1], -1), torch.cat([fused_b, b1, soft_b - b1], -1)], 0))
-        d_a, d_b = offsets.chunk(2, dim=0)
-        return GenRegOutput(soft_a + d_a + c_b, soft_b + d_b + c_a, T_a, T_b, R)
+        b_gen = apply_transform(invert_transform(M), base_b + d_b) + c_a
+        return GenRegOutput(base_a + d_a + c_b, b_gen, T, R)
 
 
 def build_discriminator(cfg: ModelConfig) -> Discriminator:

@@ -168,10 +168,7 @@ class Trainer:
             (a_g - apply_transform(T_gt, a)).abs().sum(-1).mean()
             + (b_g - apply_transform(T_inv, b)).abs().sum(-1).mean()
         )
-        terms["tnet"] = (
-            L.tnet_pose_loss(out.tnet_source, out.prealign, T_gt)
-            + L.tnet_pose_loss(out.tnet_target, out.prealign.transpose(1, 2), T_inv)
-        ).mean() if cfg.loss.tnet > 0 else zero
+        terms["tnet"] = L.tnet_pose_loss(out.tnet, out.prealign, T_gt).mean() if cfg.loss.tnet > 0 else zero
         return terms
 
     def discriminator_update(self, real: torch.Tensor, fake: torch.Tensor) -> float:
