@@ -125,16 +125,18 @@ def register_batch(
     passes: int = 1,
     generator: torch.Generator | None = None,
     timings: dict[str, float] | None = None,
-) -> tuple[torch.Tensor, object, torch.Tensor]:
+) -> tuple[torch.Tensor, object, torch.Tensor, torch.Tensor]:
     """Network + PDSAC on (B, N, 3) batches, optionally repeated on the residual.
 
     Pass k runs the network on (T a, b), where T is the estimate so far, and composes its result:
-    T <- T_k T. Returns (T_est (B, 4, 4) with b ~ T_est a, the last GenRegOutput, union inliers).
+    T <- T_k T. Returns (T_est (B, 4, 4) with b ~ T_est a, the last GenRegOutput, union inliers, and the
+    estimate the last pass started from: its B_g is in the frame of that moved source).
     Seconds spent in the network and in PDSAC are added to `timings` ('network', 'pdsac') if given.
     """
     timings = {} if timings is None else timings
     T = torch.eye(4, dtype=a.dtype, device=a.device).expand(a.shape[0], 4, 4)
     for _ in range(passes):
+        start = T
         moved = apply_transform(T, a)
         t0 = time.perf_counter()
         out = model(moved, b)
@@ -145,4 +147,4 @@ def register_batch(
         T = T_k @ T
         timings["network"] = timings.get("network", 0.0) + t1 - t0
         timings["pdsac"] = timings.get("pdsac", 0.0) + time.perf_counter() - t1
-    return T, out, inliers
+    return T, out, inliers, start

@@ -127,8 +127,10 @@ class Registrar:
         with torch.no_grad():
             gen = torch.Generator().manual_seed(cfg.seed) if cfg.seed is not None else None
             stages: dict[str, float] = {}
-            T_n, out, inliers = register_batch(self.model, a, b, cfg.pdsac, cfg.passes, gen, stages)
+            T_n, out, inliers, last_start = register_batch(self.model, a, b, cfg.pdsac, cfg.passes, gen, stages)
         T_n = T_n[0].double().cpu().numpy()
+        # The last pass saw the source moved by `last_start` (and the initial guess): B_g is in that frame.
+        back = np.linalg.inv(denormalize_transform(last_start[0].double().cpu().numpy(), offset, scale) @ init)
         t3 = time.perf_counter()
         if cfg.refine.method != "none":
             T_n = refine_icp(dense_src, dense_tgt, T_n, cfg.refine)
@@ -143,8 +145,7 @@ class Registrar:
         return RegistrationResult(
             transformation=T,
             source_generated=a_gen.astype(np.float32),
-            # B_g lives in the (initial-guess-moved) source frame; map it back to the source's own frame.
-            target_generated=apply_transform(np.linalg.inv(init), b_gen).astype(np.float32),
+            target_generated=apply_transform(back, b_gen).astype(np.float32),
             aligned_source=aligned,
             source_valid_mask=src_mask,
             fitness=fitness,

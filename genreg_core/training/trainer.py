@@ -198,7 +198,7 @@ class Trainer:
             gen = torch.Generator().manual_seed(self.cfg.seed)
             for batch in self.val_batches:
                 a, b, T_gt = (batch[k].to(self.device) for k in ("source", "target", "transform"))
-                T_est, _, _ = register_batch(self.generator, a, b, self.cfg.pdsac, passes, gen)
+                T_est, *_ = register_batch(self.generator, a, b, self.cfg.pdsac, passes, gen)
                 for i in range(len(a)):
                     Te, Tg = T_est[i].double().cpu().numpy(), T_gt[i].double().cpu().numpy()
                     re.append(rotation_error_deg(Te[:3, :3], Tg[:3, :3]))
