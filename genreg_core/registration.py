@@ -19,6 +19,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import open3d as o3d
 import torch
+from scipy.spatial import cKDTree
 
 from genreg_core.checkpoint import load_checkpoint
 from genreg_core.config import RefineConfig, RegistrationConfig
@@ -37,7 +38,7 @@ class RegistrationResult:
     target_generated: np.ndarray  # B_g: (n, 3) model-resolution target generated in the source frame
     aligned_source: np.ndarray  # (K, 3) float32: the finite source points, input order, in target frame
     source_valid_mask: np.ndarray  # (N,) bool: which input source rows were finite (and kept)
-    fitness: float  # fraction of sampled source points with a target neighbour within the threshold
+    fitness: float  # share of sampled source points with a target point within 3x the target's spacing
     inlier_ratio: float  # fraction of generated correspondences (both directions) consistent with T
     inlier_rmse: float  # RMS distance of the fitness inliers, input units
     confidence: float  # in [0, 1]: geometric mean of fitness and inlier_ratio
@@ -135,7 +136,7 @@ class Registrar:
         if cfg.refine.method != "none":
             T_n = refine_icp(dense_src, dense_tgt, T_n, cfg.refine)
         t4 = time.perf_counter()
-        fitness, rmse_n = overlap_fitness(dense_src, dense_tgt, T_n, cfg.pdsac.inlier_threshold)
+        fitness, rmse_n = overlap_fitness(dense_src, dense_tgt, T_n, FITNESS_SPACINGS * point_spacing(dense_tgt))
         inlier_ratio = float(inliers.float().mean())
         T = denormalize_transform(T_n, offset, scale) @ init
         aligned = apply_transform(T, src).astype(np.float32)
@@ -175,6 +176,15 @@ def _check_transform(T: np.ndarray) -> np.ndarray:
 
 def _o3d_cloud(points: np.ndarray) -> o3d.geometry.PointCloud:
     return o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.asarray(points, dtype=np.float64)))
+
+
+FITNESS_SPACINGS = 3.0  # fitness counts a source point as overlapping within this many target spacings
+
+
+def point_spacing(points: np.ndarray) -> float:
+    """Median distance from a point to its nearest neighbour in the same cloud (its sampling density)."""
+    distances, _ = cKDTree(points).query(points, k=2)
+    return float(np.median(distances[:, 1]))
 
 
 def overlap_fitness(src: np.ndarray, tgt: np.ndarray, T: np.ndarray, threshold: float) -> tuple[float, float]:
