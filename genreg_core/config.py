@@ -45,7 +45,10 @@ class ModelConfig:
     norm: str = "group"  # normalisation in the point MLPs: "none" or "group"
     interaction: str = "global"  # "global": the paper's FI; "local": + nearest neighbour; "attention": soft pointer
     attention_dim: int = 64  # query/key width of the "attention" interaction
-    attention_sigma: float = 0.05  # initial width of its distance kernel, unit-box units (learned)
+    attention_sigma: float = 0.05  # initial width of its distance kernel, unit-box units (learned); 0: no kernel
+    encoder: str = "xyz"  # "xyz": the paper's GCNN on coordinates; "ppf": rotation-invariant point-pair features
+    offset_limit: float = 0.0  # decoder offsets squashed to |d| < this (L tanh(d / L)); 0: unbounded
+    tnet: bool = True  # the paper's T-Net; off: identity (an invariant encoder does not need it)
 
     def __post_init__(self) -> None:
         _check(self.num_points >= 32, "model.num_points must be >= 32")
@@ -54,6 +57,9 @@ class ModelConfig:
         _check(len(self.decoder_channels) == 3, "model.decoder_channels needs three widths")
         _check(self.prealign in ("none", "pca"), "model.prealign must be 'none' or 'pca'")
         _check(self.norm in ("none", "group"), "model.norm must be 'none' or 'group'")
+        _check(self.encoder in ("xyz", "ppf"), "model.encoder must be 'xyz' or 'ppf'")
+        _check(self.offset_limit >= 0, "model.offset_limit must be >= 0")
+        _check(self.attention_sigma >= 0, "model.attention_sigma must be >= 0")
         _check(self.interaction in ("global", "local", "attention"),
                "model.interaction must be 'global', 'local' or 'attention'")
 
@@ -62,7 +68,7 @@ class ModelConfig:
 class PDSACConfig:
     """Parallel differentiable sample consensus (paper Sec. 3.3)."""
 
-    num_hypotheses: int = 128  # m minimal sets drawn at once (30 % outliers: P(no clean set) ~ 1e-15)
+    num_hypotheses: int = 512  # m minimal sets drawn at once (50 % outliers: P(no clean set) ~ 1e-14)
     sample_size: int = 4  # k correspondences per minimal set
     inlier_threshold: float = 0.05  # residual cut-off in unit-box units (score truncation, inliers)
     temperature: float = 0.01  # softmax temperature of the soft (training) selection

@@ -1,8 +1,9 @@
 """Benchmark report: per-dataset tables, GenReg confidence analysis, JSON with every pair, PNG plots.
 
 Inputs are the JSON-ready records of `suites.run_benchmark` (one per pair and method, RE in degrees, TE
-and CD in the dataset's units, seconds of wall time). Statistics skip NaN (a method that raised); such
-pairs count as failures in the success rate and are listed in the `errors` column.
+and CD in the dataset's units, seconds of wall time) and the sections of `ablation.run_ablations` (same
+record fields, one table per dataset). Statistics skip NaN (a method that raised); such pairs count as
+failures in the success rate and are listed in the `errors` column.
 """
 
 from __future__ import annotations
@@ -138,12 +139,62 @@ def dataset_table(rows: Sequence[dict[str, Any]], units: str) -> str:
     return "\n".join(lines)
 
 
+def ablation_rows(section: dict[str, Any], dataset: str) -> list[dict[str, Any]]:
+    """`summarize` rows of one dataset of an ablation section, in the section's row order, plus `inliers`:
+    the mean `inlier_ratio` of the records (ground truth: the mean `gt_inlier_ratio` of the dataset)."""
+    info = section["datasets"][dataset]
+    records = [r for r in section["records"] if r["dataset"] == dataset]
+    rows = summarize(records, info["cd_floor"])
+    for row in rows:
+        values = info.get("gt_inlier_ratio", []) if row["method"] == "ground truth" else \
+            [r.get("inlier_ratio", float("nan")) for r in records if r["method"] == row["method"]]
+        row["inliers"] = _nanstat([float("nan") if v is None else v for v in values], np.mean)
+    rank = {name: k for k, name in enumerate(["ground truth", *section.get("order", [])])}
+    return sorted(rows, key=lambda r: rank.get(r["method"], len(rank)))
+
+
+def ablation_table(rows: Sequence[dict[str, Any]], units: str, column: str, threads: int) -> str:
+    d = 4
+    head = (f"| {column} | CD ({units}) | RE mean (deg) | RE median (deg) | TE mean ({units}) | "
+            f"TE median ({units}) | success | inliers | {column} ms median "
+            f"({threads} thread{'s' if threads != 1 else ''}) |")
+    lines = [head, "|" + "---|" * 9]
+    for r in rows:
+        err = f" ({r['errors']} errors)" if r["errors"] else ""
+        lines.append(
+            f"| {r['method']}{err} | {_f(r['cd'], d)} | {_f(r['re_mean'], 2)} | {_f(r['re_median'], 2)} | "
+            f"{_f(r['te_mean'], d)} | {_f(r['te_median'], d)} | {_pct(r['success'])} | {_pct(r.get('inliers'))} | "
+            f"{_f(r['ms_median'], 2)} |"
+        )
+    return "\n".join(lines)
+
+
+def ablation_markdown(section: dict[str, Any], threads: int) -> list[str]:
+    """Lines of one ablation section: title, description, one table per dataset."""
+    out = ["", f"## {section['title']}", "", section["description"]]
+    for name, info in section["datasets"].items():
+        sr = info["success"]
+        out += [
+            "",
+            f"### {info['title']}",
+            "",
+            (f"{info['pairs']} of {info['available_pairs']} pairs, {info['points_per_cloud']} points per source "
+             f"cloud, GenReg checkpoint `{info['checkpoint']}` at N = {info['num_points']}, units: {info['units']}; "
+             f"success: RE < {sr['max_re_deg']:g} deg and TE < {sr['max_te']:g}; network (shared, not in the "
+             f"solver times) {1e3 * _nanstat(info['network_seconds'], np.median):.1f} ms median."),
+            "",
+            ablation_table(ablation_rows(section, name), info["units"], section["column"], threads),
+        ]
+    return out
+
+
 def markdown(run: BenchRun, thresholds: Sequence[float] = DEFAULT_CONFIDENCE_THRESHOLDS) -> str:
     m = run.meta
     th = m["threads"]
     ck = m["checkpoints"]
+    ablations = m.get("ablations")
     out = [
-        f"# GenReg benchmark: suite `{m['suite']}`",
+        f"# GenReg benchmark: suite `{m['suite']}`" + (f", ablations {', '.join(ablations)}" if ablations else ""),
         "",
         f"- Date {m['date']}; {m['machine']['cpu_count']} CPUs; torch {m['machine']['torch']}"
         + (f"; suite wall time {m['wall_seconds']:.0f} s" if "wall_seconds" in m else "")
@@ -158,9 +209,10 @@ def markdown(run: BenchRun, thresholds: Sequence[float] = DEFAULT_CONFIDENCE_THR
         "the `ground truth` row is the CD at the true pose (the floor)."),
         ("- Success: RE < 5 deg and TE < 0.1 in the unit box; RE < 2 deg and TE < 0.1 m on real (metric) "
         "frame pairs (TE is taken at the camera origin). `identity` is no registration (the motion in the pairs)."),
-        ("- ms/pair: wall time of one registration at batch 1 (median), each method's preprocessing "
-        "(downsampling, normals, features, resampling) included."),
     ]
+    if run.datasets:
+        out.append("- ms/pair: wall time of one registration at batch 1 (median), each method's preprocessing "
+                   "(downsampling, normals, features, resampling) included.")
     for msg in run.skipped:
         out.append(f"- **Skipped:** {msg}")
     for name, info in run.datasets.items():
@@ -203,6 +255,8 @@ def markdown(run: BenchRun, thresholds: Sequence[float] = DEFAULT_CONFIDENCE_THR
                              f"({sp['n_below']}) |" for sp in c["splits"])
             out.append(f"| {c['dataset']} | {c['method']} | {c['pairs']} | {c['successes']} | "
                        f"{c['mean_confidence']:.3f} | {_f(c['auc'], 3)} |" + splits)
+    for section in run.ablations:
+        out += ablation_markdown(section, th["requested"])
     return "\n".join(out) + "\n"
 
 
@@ -226,9 +280,10 @@ def to_json(run: BenchRun, thresholds: Sequence[float] = DEFAULT_CONFIDENCE_THRE
         name: summarize([r for r in run.records if r["dataset"] == name], info["cd_floor"])
         for name, info in run.datasets.items()
     }
+    ablations = [{**a, "summary": {name: ablation_rows(a, name) for name in a["datasets"]}} for a in run.ablations]
     return _clean({"meta": run.meta, "datasets": run.datasets, "summary": summaries, "skipped": run.skipped,
                    "throughput": run.throughput, "confidence": confidence_rows(run, thresholds),
-                   "records": run.records})
+                   "records": run.records, "ablations": ablations})
 
 
 def _grid(n: int) -> tuple[Any, list[Any]]:
@@ -310,20 +365,27 @@ def load_run(path: str | Path) -> BenchRun:
     """A run back from its results.json (None where the run had NaN), e.g. to re-render the report."""
     data = json.loads(Path(path).read_text())
     nan = float("nan")
-    records = [{k: (nan if v is None and k in ("re_deg", "te", "cd", "seconds") else v) for k, v in r.items()}
-               for r in data["records"]]
-    return BenchRun(data["meta"], data["datasets"], records, data["throughput"], data["skipped"])
+
+    def restore(records: list[dict[str, Any]]) -> list[dict[str, Any]]:
+        return [{k: (nan if v is None and k in ("re_deg", "te", "cd", "seconds") else v) for k, v in r.items()}
+                for r in records]
+
+    ablations = [{**{k: v for k, v in a.items() if k != "summary"}, "records": restore(a["records"])}
+                 for a in data.get("ablations", [])]
+    return BenchRun(data["meta"], data["datasets"], restore(data["records"]), data["throughput"], data["skipped"],
+                    ablations)
 
 
 def write_report(
     run: BenchRun, out_dir: str | Path, thresholds: Sequence[float] = DEFAULT_CONFIDENCE_THRESHOLDS
 ) -> dict[str, Path]:
-    """Write report.md, results.json, re_cdf.png and accuracy_vs_time.png into out_dir."""
+    """Write report.md, results.json and (with method tables) re_cdf.png and accuracy_vs_time.png into out_dir."""
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     paths = {"markdown": out / "report.md", "json": out / "results.json"}
     paths["markdown"].write_text(markdown(run, thresholds))
     paths["json"].write_text(json.dumps(to_json(run, thresholds), indent=1, allow_nan=False))
-    paths["re_cdf"] = plot_re_cdf(run, out / "re_cdf.png")
-    paths["accuracy_vs_time"] = plot_accuracy_time(run, out / "accuracy_vs_time.png")
+    if run.datasets:
+        paths["re_cdf"] = plot_re_cdf(run, out / "re_cdf.png")
+        paths["accuracy_vs_time"] = plot_accuracy_time(run, out / "accuracy_vs_time.png")
     return paths

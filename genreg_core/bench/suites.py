@@ -11,8 +11,8 @@ thread setting, and records per pair and method:
 - GenReg only: confidence, fitness, inlier ratio and stage timings of `RegistrationResult`.
 Transforms are 4x4 target_from_source (x_t = R x_s + t). GenReg methods load one checkpoint per dataset
 kind ("object": ModelNet40, "scene": 7-Scenes and SUN3D); a missing checkpoint skips them with a message.
-Further tables (issue 5's backbone and pose-solver ablations) are separate sections with their own
-method lists; they reuse `run_dataset` and `report.summarize`.
+Ablations (issue 5) are separate sections of a run (`BenchRun.ablations`, module `ablation`); they reuse
+the pair plan (`plan_pairs`), `evaluate` and `report.summarize`.
 """
 
 from __future__ import annotations
@@ -235,6 +235,7 @@ class BenchRun:
     records: list[dict[str, Any]]
     throughput: list[dict[str, Any]]
     skipped: list[str]
+    ablations: list[dict[str, Any]] = field(default_factory=list)  # JSON-ready sections (`ablation`)
 
 
 def _cd_subset(points: np.ndarray, n: int, rng: np.random.Generator) -> np.ndarray:
@@ -326,9 +327,7 @@ def run_benchmark(
 
     `methods` / `datasets` restrict the run; `max_pairs` caps the pairs per dataset.
     """
-    suite_name = suite if isinstance(suite, str) else "custom"
-    spec_suite = SUITES[suite] if isinstance(suite, str) else suite
-    options = replace(options or BenchOptions(), **spec_suite.options)
+    suite_name, spec_suite, options = resolve_suite(suite, options)
     checkpoints = {**DEFAULT_CHECKPOINTS, **(checkpoints or {})}
     wanted = list(methods or ALL_METHODS)
     unknown = sorted(set(wanted) - set(ALL_METHODS))
@@ -349,14 +348,7 @@ def run_benchmark(
             skipped.append(msg)
             log(msg)
 
-    plan = []
-    for name in names:
-        spec = DATASETS[name]
-        pairs = spec.build(options)
-        count = spec_suite.counts[name]
-        count = min(count, max_pairs) if count is not None and max_pairs else (count or max_pairs)
-        plan.append((spec, pairs, select_indices(len(pairs), count)))
-
+    plan = plan_pairs(spec_suite, names, options, max_pairs)
     records, infos, throughput = [], {}, []
     warmed: set[tuple[str, str, bool]] = set()
     bar = tqdm(total=sum(len(p[2]) for p in plan), unit="pair", disable=not progress)
@@ -394,15 +386,43 @@ def run_benchmark(
             row = measure_throughput(regs["genreg"], pairs, indices, options.throughput_batch)
             throughput.append({"kind": kind, "checkpoint": checkpoints[kind], "dataset": spec.name, **row})
 
-    meta = {
-        "suite": suite_name, "options": asdict(options), "methods": wanted, "checkpoints": checkpoints,
+    meta = run_meta(suite_name, options, wanted, checkpoints, load_start[0])
+    return BenchRun(meta, infos, records, throughput, skipped)
+
+
+def resolve_suite(suite: str | Suite, options: BenchOptions | None) -> tuple[str, Suite, BenchOptions]:
+    """(name, Suite, options with the suite's overrides) of a suite name or a custom `Suite`."""
+    spec_suite = SUITES[suite] if isinstance(suite, str) else suite
+    return (suite if isinstance(suite, str) else "custom", spec_suite,
+            replace(options or BenchOptions(), **spec_suite.options))
+
+
+def plan_pairs(
+    suite: Suite, names: Sequence[str], options: BenchOptions, max_pairs: int | None
+) -> list[tuple[DatasetSpec, Any, list[int]]]:
+    """(spec, pair set, selected indices) per dataset name: the suite's count, capped by `max_pairs`."""
+    plan = []
+    for name in names:
+        spec = DATASETS[name]
+        pairs = spec.build(options)
+        count = suite.counts[name]
+        count = min(count, max_pairs) if count is not None and max_pairs else (count or max_pairs)
+        plan.append((spec, pairs, select_indices(len(pairs), count)))
+    return plan
+
+
+def run_meta(
+    suite_name: str, options: BenchOptions, methods: Sequence[str], checkpoints: dict[str, str], load_start: float
+) -> dict[str, Any]:
+    """The `BenchRun.meta` of a run: settings, threads, machine, date and the 1-minute load average."""
+    return {
+        "suite": suite_name, "options": asdict(options), "methods": list(methods), "checkpoints": checkpoints,
         "threads": thread_report(options.threads),
-        "load_average": {"start": load_start[0], "end": os.getloadavg()[0]},  # 1-minute, other jobs included
+        "load_average": {"start": load_start, "end": os.getloadavg()[0]},  # 1-minute, other jobs included
         "machine": {"cpu_count": os.cpu_count(), "platform": platform.platform(), "python": platform.python_version(),
                     "torch": torch.__version__},
         "date": time.strftime("%Y-%m-%d %H:%M:%S %Z"),
     }
-    return BenchRun(meta, infos, records, throughput, skipped)
 
 
 def thread_report(threads: int) -> dict[str, Any]:

@@ -31,7 +31,8 @@ from genreg_core.geometry import apply_transform, invert_transform
 from genreg_core.model.decoder import Decoder
 from genreg_core.model.discriminator import Discriminator
 from genreg_core.model.gcnn import EdgeConv
-from genreg_core.model.layers import centroid
+from genreg_core.model.invariant import InvariantEncoder
+from genreg_core.model.layers import centroid, zero_last_layer
 from genreg_core.model.mixer import MixerLayer
 from genreg_core.model.prealign import pca_prealign
 from genreg_core.model.tnet import TNet
@@ -45,6 +46,8 @@ class GenRegOutput:
     target_generated: torch.Tensor  # B_g (B, N, 3), in A's frame
     tnet: torch.Tensor  # (B, 4, 4) T-Net transform of centred, pre-rotated A into B's centred frame
     prealign: torch.Tensor  # (B, 3, 3) pre-rotation of centred A (identity when off)
+    # "attention" only: log pointer weights, A's points onto B's (B, N, M) and B's onto A's (B, M, N)
+    match_logits: tuple[torch.Tensor, torch.Tensor] | None = None
 
 
 class PointMixerEncoder(nn.Module):
@@ -53,7 +56,10 @@ class PointMixerEncoder(nn.Module):
 
     def __init__(self, cfg: ModelConfig) -> None:
         super().__init__()
-        self.gcnn = EdgeConv(3, cfg.gcnn_channels, cfg.k_neighbors, norm=cfg.norm)
+        self.gcnn: nn.Module = (
+            InvariantEncoder(cfg.gcnn_channels, cfg.k_neighbors, norm=cfg.norm) if cfg.encoder == "ppf"
+            else EdgeConv(3, cfg.gcnn_channels, cfg.k_neighbors, norm=cfg.norm)
+        )
         h1, h2 = cfg.mixer_hidden
         self.mixer1 = MixerLayer(cfg.num_points, cfg.gcnn_channels, h1, cfg.feature_dim)
         self.mixer2 = MixerLayer(cfg.num_points, cfg.feature_dim, h2, cfg.feature_dim)
@@ -76,20 +82,38 @@ def nearest_neighbour_context(
 
 
 class SoftPointer(nn.Module):
-    """Attention of each point onto the other cloud's points (both in one frame): learned feature
-    similarity minus a Gaussian distance kernel of learned width. Returns the weighted mean point."""
+    """Attention of each point onto the other cloud's points (both in one frame): cosine similarity of
+    learned query/key features (each centred over its cloud) times a learned sharpness (starts at
+    `sharpness`), minus a Gaussian distance kernel of learned width (sigma 0: no kernel, features
+    alone). Training returns the weighted mean point (a soft pick of the other cloud's points);
+    inference (eval mode) returns the best-matching point itself."""
 
-    def __init__(self, channels: int, dim: int, sigma: float) -> None:
+    def __init__(self, channels: int, dim: int, sigma: float, sharpness: float = 10.0) -> None:
         super().__init__()
         self.query = nn.Linear(channels, dim)
         self.key = nn.Linear(channels, dim)
-        self.log_sigma = nn.Parameter(torch.tensor(float(sigma)).log())
-        self.scale = dim ** -0.5
+        self.spatial = sigma > 0
+        self.log_sigma = nn.Parameter(torch.tensor(float(sigma if sigma > 0 else 1.0)).log())
+        self.log_sharpness = nn.Parameter(torch.tensor(float(sharpness)).log())
 
-    def forward(self, x: torch.Tensor, f_x: torch.Tensor, y: torch.Tensor, f_y: torch.Tensor) -> torch.Tensor:
-        logits = (self.query(f_x) @ self.key(f_y).transpose(1, 2)) * self.scale
-        logits = logits - torch.cdist(x, y).square() / (2.0 * self.log_sigma.exp().square())
-        return torch.softmax(logits, dim=-1) @ y
+    def forward(
+        self, x: torch.Tensor, f_x: torch.Tensor, y: torch.Tensor, f_y: torch.Tensor
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """x (B, N, 3), y (B, M, 3) and their features -> (pointed points (B, N, 3), log weights (B, N, M))."""
+        q, k = self.query(f_x), self.key(f_y)
+        # Centred over each cloud's points: the component all points share carries no match.
+        q = nn.functional.normalize(q - q.mean(dim=1, keepdim=True), dim=-1)
+        k = nn.functional.normalize(k - k.mean(dim=1, keepdim=True), dim=-1)
+        logits = (q @ k.transpose(1, 2)) * self.log_sharpness.exp()
+        if self.spatial:
+            logits = logits - torch.cdist(x, y).square() / (2.0 * self.log_sigma.exp().square())
+        log_w = torch.log_softmax(logits, dim=-1)
+        if self.training:
+            return log_w.exp() @ y, log_w
+        # Inference: the best match itself, a real point of the other cloud. A soft mean of several
+        # candidate matches lands between them, off the surface, and PDSAC then counts it an outlier.
+        best = log_w.argmax(dim=-1, keepdim=True)
+        return torch.gather(y, 1, best.expand(-1, -1, 3)), log_w
 
 
 def feature_interaction(f_a: torch.Tensor, f_b: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -108,10 +132,13 @@ class GenRegNet(nn.Module):
     def __init__(self, cfg: ModelConfig | None = None) -> None:
         super().__init__()
         self.config = cfg or ModelConfig()
-        self.tnet = TNet(self.config)
+        self.tnet = TNet(self.config) if self.config.tnet else None
         self.encoder = PointMixerEncoder(self.config)
         extra = {"global": 0, "local": 3 + self.config.feature_dim, "attention": 3}[self.config.interaction]
         self.decoder = Decoder(2 * self.config.feature_dim + 3 + extra, self.config.decoder_channels)
+        if self.config.encoder == "ppf":  # token mixing starts as a no-op: random point order is not signal
+            for mixer in (self.encoder.mixer1, self.encoder.mixer2):
+                zero_last_layer(mixer.token_mlp)
         if self.config.interaction == "attention":
             self.pointer = SoftPointer(self.config.feature_dim, self.config.attention_dim, self.config.attention_sigma)
 
@@ -126,7 +153,8 @@ class GenRegNet(nn.Module):
         if cfg.prealign == "pca":
             R = pca_prealign(a0, b0)
         a_pre = a0 @ R.transpose(1, 2)
-        T = self.tnet(a_pre, b0)
+        eye = torch.eye(4, dtype=a.dtype, device=a.device)
+        T = self.tnet(a_pre, b0) if self.tnet is not None else eye.repeat(a.shape[0], 1, 1)
         a1 = apply_transform(T, a_pre)  # A in B's centred frame
         M = T.clone()
         M[:, :3, :3] = T[:, :3, :3] @ R
@@ -134,17 +162,21 @@ class GenRegNet(nn.Module):
         fused_a, fused_b = feature_interaction(f_a, f_b)
         inputs_a, inputs_b = [fused_a, a1], [fused_b, b0]
         base_a, base_b = a1, b0
+        match = None
         if cfg.interaction == "local":
             inputs_a.append(nearest_neighbour_context(a1, b0, f_b))
             inputs_b.append(nearest_neighbour_context(b0, a1, f_a))
         elif cfg.interaction == "attention":
-            base_a, base_b = self.pointer(a1, f_a, b0, f_b), self.pointer(b0, f_b, a1, f_a)
+            (base_a, log_w_a), (base_b, log_w_b) = self.pointer(a1, f_a, b0, f_b), self.pointer(b0, f_b, a1, f_a)
+            match = (log_w_a, log_w_b)
             inputs_a.append(base_a - a1)
             inputs_b.append(base_b - b0)
         offsets = self.decoder(torch.cat([torch.cat(inputs_a, -1), torch.cat(inputs_b, -1)], 0))
+        if cfg.offset_limit > 0:  # the decoder refines the pointer's output; it cannot undo it
+            offsets = cfg.offset_limit * torch.tanh(offsets / cfg.offset_limit)
         d_a, d_b = offsets.chunk(2, dim=0)
         b_gen = apply_transform(invert_transform(M), base_b + d_b) + c_a
-        return GenRegOutput(base_a + d_a + c_b, b_gen, T, R)
+        return GenRegOutput(base_a + d_a + c_b, b_gen, T, R, match)
 
 
 def build_discriminator(cfg: ModelConfig) -> Discriminator:

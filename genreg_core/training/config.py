@@ -36,6 +36,8 @@ class LossWeights:
     transformation: float = 1.0
     correspondence: float = 0.0
     tnet: float = 0.0  # our lever: T-Net pose supervision (centred clouds: ideal is R_gt)
+    matching: float = 0.0  # our lever: soft-pointer cross-entropy ("attention" interaction only)
+    matching_sigma: float = 0.05  # width of the true soft match, unit-box units (~ the point spacing)
 
 
 @dataclass(frozen=True)

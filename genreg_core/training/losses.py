@@ -6,6 +6,8 @@
 - adversarial: discriminator real/fake (standard GAN or WGAN-GP)
 - transformation: |T_est T_gt^-1 - I| (Frobenius), as DSAC's expectation over PDSAC's hypotheses
 - correspondence (our lever, weight 0 in the paper's recipe): mean |A_g,i - T_gt A_i|
+- matching (our lever, "attention" interaction only): cross-entropy of the pointer's weights against
+  the true soft match
 """
 
 from __future__ import annotations
@@ -71,6 +73,15 @@ def tnet_pose_loss(T_tnet: torch.Tensor, R_pre: torch.Tensor, T_gt: torch.Tensor
     ground-truth rotation with no translation. (B, 4, 4), (B, 3, 3), (B, 4, 4) -> (B,)."""
     R = T_tnet[:, :3, :3] @ R_pre
     return torch.linalg.norm(R - T_gt[:, :3, :3], dim=(-2, -1)) + torch.linalg.norm(T_tnet[:, :3, 3], dim=-1)
+
+
+def matching_loss(log_weights: torch.Tensor, moved: torch.Tensor, other: torch.Tensor, sigma: float) -> torch.Tensor:
+    """Cross-entropy of a soft pointer's weights (B, N, M, log) against the true soft match: point i,
+    moved into the other cloud's frame by the ground truth (`moved`, (B, N, 3)), should pick the
+    points of `other` (B, M, 3) near it, p_ij ~ exp(-|moved_i - other_j|^2 / (2 sigma^2)). -> (B,)."""
+    with torch.no_grad():
+        target = torch.softmax(-torch.cdist(moved, other).square() / (2.0 * sigma**2), dim=-1)
+    return -(target * log_weights).sum(-1).mean(-1)
 
 
 def gan_discriminator_loss(real_logits: torch.Tensor, fake_logits: torch.Tensor) -> torch.Tensor:

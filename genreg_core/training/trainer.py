@@ -22,6 +22,7 @@ from torch import nn
 from tqdm import tqdm
 
 from genreg_core.checkpoint import load_checkpoint, save_checkpoint
+from genreg_core.config import PDSACConfig
 from genreg_core.geometry import apply_transform, invert_transform
 from genreg_core.metrics import chamfer_distance, rotation_error_deg
 from genreg_core.model.discriminator import Discriminator
@@ -31,9 +32,11 @@ from genreg_core.training import losses as L
 from genreg_core.training.config import TrainConfig
 from genreg_core.training.datasets import build_pair_sets, make_batch, validation_batches
 
+INFERENCE_PDSAC = PDSACConfig()  # validation measures what the registration API will do
+
 LOG_FIELDS = (
     "iteration", "generator_steps", "elapsed_s", "lr", "max_angle_deg", "loss", "absolute", "relative",
-    "cycle", "adversarial", "transformation", "correspondence", "tnet", "discriminator",
+    "cycle", "adversarial", "transformation", "correspondence", "tnet", "matching", "discriminator",
     "val_re_mean", "val_re_median", "val_te_mean", "val_cd_mean",
     "val2_re_mean", "val2_re_median", "val2_te_mean", "val2_cd_mean",
 )
@@ -168,6 +171,13 @@ class Trainer:
             (a_g - apply_transform(T_gt, a)).abs().sum(-1).mean()
             + (b_g - apply_transform(T_inv, b)).abs().sum(-1).mean()
         )
+        terms["matching"] = zero
+        if cfg.loss.matching > 0 and out.match_logits is not None:
+            log_w_a, log_w_b = out.match_logits
+            c_a, c_b = a.mean(1, keepdim=True), b.mean(1, keepdim=True)  # the pointer works on centred clouds
+            sigma = cfg.loss.matching_sigma
+            terms["matching"] = (L.matching_loss(log_w_a, apply_transform(T_gt, a) - c_b, b - c_b, sigma)
+                                 + L.matching_loss(log_w_b, apply_transform(T_inv, b) - c_a, a - c_a, sigma)).mean()
         terms["tnet"] = L.tnet_pose_loss(out.tnet, out.prealign, T_gt).mean() if cfg.loss.tnet > 0 else zero
         return terms
 
@@ -187,7 +197,7 @@ class Trainer:
     # ----------------------------------------------------------------- validation
     @torch.no_grad()
     def validate(self) -> dict[str, float]:
-        """RE/TE/CD of network + PDSAC (hard selection, refit) on the fixed validation pairs, with
+        """RE/TE/CD of network + PDSAC (the API's settings: hard selection, refit) on the fixed validation pairs, with
         one pass (`val_*`) and with `validation_passes` passes on the residual (`val2_re_*`)."""
         self.generator.eval()
         metrics: dict[str, float] = {}
@@ -198,7 +208,7 @@ class Trainer:
             gen = torch.Generator().manual_seed(self.cfg.seed)
             for batch in self.val_batches:
                 a, b, T_gt = (batch[k].to(self.device) for k in ("source", "target", "transform"))
-                T_est, *_ = register_batch(self.generator, a, b, self.cfg.pdsac, passes, gen)
+                T_est, *_ = register_batch(self.generator, a, b, INFERENCE_PDSAC, passes, gen)
                 for i in range(len(a)):
                     Te, Tg = T_est[i].double().cpu().numpy(), T_gt[i].double().cpu().numpy()
                     re.append(rotation_error_deg(Te[:3, :3], Tg[:3, :3]))

@@ -1,0 +1,294 @@
+"""Issue 5's pose-solver ablation: PDSAC against Open3D's RANSAC on the same generated correspondences.
+
+Per pair the GenReg network runs once, on inputs prepared as `Registrar.register` prepares them (source
+and target resampled to the model's N with the config's seed, one similarity from the source's bounding
+box), so the `pdsac` row reproduces the suite's `genreg` method. Every solver then estimates T_BA
+(4x4, column vectors, target_from_source: b ~ R a + t) in normalised units from the union of the
+correspondences {A_i -> A_g,i} and {B_g,i -> B_i}, which all obey B-frame = T_BA A-frame (see `pdsac`):
+- `pdsac`: `pdsac_bidirectional` with the RegistrationConfig's settings (m hypotheses of k points per
+  direction, truncated-residual score on the union, least-squares refit on the union's inliers);
+- `o3d-ransac`: Open3D `registration_ransac_based_on_correspondence` on the union: inlier distance =
+  PDSAC's inlier_threshold, point-to-point (Kabsch) estimation, no checkers, best inlier count (then
+  RMSE) wins, early exit at the criteria's confidence; it returns the best minimal-sample transform.
+  Seeded through `o3d.utility.random.seed`, its results still vary slightly from run to run (seen with
+  Open3D 0.20 at one thread; isl-org/Open3D#7475), while PDSAC's are bit-reproducible;
+- `o3d-ransac+refit`: that transform refit on its inliers by PDSAC's least squares (`refit_on_inliers`),
+  which separates the hypothesis search from the final refit.
+The estimate is mapped back to the dataset's units and scored like the suites (RE deg, TE, CD, success).
+`seconds` is the solver's wall time alone (inputs already in memory, Open3D's conversions included),
+after one untimed warm-up; the network time is stored apart (`network_seconds` per pair).
+"""
+
+from __future__ import annotations
+
+import os
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import asdict, dataclass
+from functools import partial
+from typing import Any
+
+import numpy as np
+import open3d as o3d
+import torch
+from tqdm import tqdm
+
+from genreg_core.bench.suites import (
+    DEFAULT_CHECKPOINTS,
+    BenchOptions,
+    BenchRun,
+    DatasetSpec,
+    Suite,
+    _cd_subset,
+    evaluate,
+    plan_pairs,
+    resolve_suite,
+    run_meta,
+)
+from genreg_core.config import PDSACConfig, RegistrationConfig
+from genreg_core.errors import CheckpointError
+from genreg_core.geometry import apply_transform, denormalize_transform, unit_box_normalization
+from genreg_core.metrics import chamfer_distance
+from genreg_core.pdsac import pdsac_bidirectional, refit_on_inliers, residuals
+from genreg_core.registration import Registrar, subsample, validate_cloud
+
+reg = o3d.pipelines.registration
+
+POSE_SOLVER = "pose-solver"
+POSE_SOLVER_TITLE = "Ablation: pose solver (same generated correspondences)"
+
+
+@dataclass(frozen=True)
+class Correspondences:
+    """GenReg's generated correspondences of one pair, normalised units, (1, N, 3) tensors each.
+
+    a -> a_gen: A's points and where the network puts them in B's frame; b_gen -> b: B's points generated
+    in A's frame and B's points. Inliers of both obey x_B = T_BA x_A.
+    """
+
+    a: torch.Tensor
+    a_gen: torch.Tensor
+    b: torch.Tensor
+    b_gen: torch.Tensor
+
+    def union(self) -> tuple[np.ndarray, np.ndarray]:
+        """(src (2N, 3) in A's frame, dst (2N, 3) in B's frame) float64, dst_i ~ T_BA src_i for inliers."""
+        src = torch.cat([self.a, self.b_gen], dim=1)[0]
+        dst = torch.cat([self.a_gen, self.b], dim=1)[0]
+        return src.double().numpy(), dst.double().numpy()
+
+
+@dataclass(frozen=True)
+class RansacSettings:
+    """Open3D RANSAC settings; the inlier distance is PDSAC's inlier_threshold."""
+
+    ransac_n: int = 3  # correspondences per minimal sample (drawn with replacement by Open3D)
+    max_iteration: int = 100_000  # its loop still walks every index after an early exit (a fixed cost)
+    confidence: float = 0.999  # early exit once P(an all-inlier sample was drawn) reaches this
+
+
+Solver = Callable[[Correspondences, PDSACConfig, int | None], np.ndarray]  # -> 4x4 T_BA, normalised units
+
+
+def solve_pdsac(c: Correspondences, cfg: PDSACConfig, seed: int | None) -> np.ndarray:
+    """The API's solver: `pdsac_bidirectional`, hypotheses drawn from a generator seeded like `Registrar`."""
+    gen = torch.Generator().manual_seed(seed) if seed is not None else None
+    with torch.no_grad():
+        T, *_ = pdsac_bidirectional(c.a, c.a_gen, c.b, c.b_gen, cfg, gen)
+    return T[0].double().numpy()
+
+
+def solve_o3d_ransac(
+    c: Correspondences, cfg: PDSACConfig, seed: int | None, settings: RansacSettings = RansacSettings(),
+    refit: bool = False,
+) -> np.ndarray:
+    """Open3D correspondence RANSAC on the union (identity if it finds nothing); `refit`: PDSAC's refit after."""
+    src, dst = c.union()
+    index = np.arange(len(src), dtype=np.int32)
+    corres = o3d.utility.Vector2iVector(np.column_stack([index, index]))
+    if seed is not None:
+        o3d.utility.random.seed(seed)  # Open3D's global generator; runs still differ slightly (Open3D #7475)
+    result = reg.registration_ransac_based_on_correspondence(
+        o3d.geometry.PointCloud(o3d.utility.Vector3dVector(src)),
+        o3d.geometry.PointCloud(o3d.utility.Vector3dVector(dst)),
+        corres, cfg.inlier_threshold, reg.TransformationEstimationPointToPoint(False), settings.ransac_n, [],
+        reg.RANSACConvergenceCriteria(settings.max_iteration, settings.confidence),
+    )
+    T = np.asarray(result.transformation).copy()
+    if refit:
+        T_t, _ = refit_on_inliers(torch.from_numpy(T)[None], torch.from_numpy(src)[None],
+                                  torch.from_numpy(dst)[None], cfg.inlier_threshold)
+        T = T_t[0].numpy()
+    return T
+
+
+def pose_solvers(settings: RansacSettings = RansacSettings()) -> dict[str, Solver]:
+    """The compared solvers, in table order."""
+    return {
+        "pdsac": solve_pdsac,
+        "o3d-ransac": partial(solve_o3d_ransac, settings=settings),
+        "o3d-ransac+refit": partial(solve_o3d_ransac, settings=settings, refit=True),
+    }
+
+
+def generate(
+    registrar: Registrar, source: np.ndarray, target: np.ndarray
+) -> tuple[Correspondences, np.ndarray, float, float]:
+    """One network pass on the pair as `Registrar.register` prepares it (no initial guess, one pass).
+
+    Returns (correspondences, offset, scale, network seconds); x_normalised = (x - offset) / scale.
+    """
+    cfg = registrar.config
+    src, _ = validate_cloud(source, "source", cfg.min_points)
+    tgt, _ = validate_cloud(target, "target", cfg.min_points)
+    rng = np.random.default_rng(cfg.seed)
+    offset, scale = unit_box_normalization(src)
+    n = registrar.num_points
+    a = torch.from_numpy(((subsample(src, n, rng) - offset) / scale).astype(np.float32))[None]
+    b = torch.from_numpy(((subsample(tgt, n, rng) - offset) / scale).astype(np.float32))[None]
+    t0 = time.perf_counter()
+    with torch.no_grad():
+        out = registrar.model(a.to(cfg.device), b.to(cfg.device))
+    seconds = time.perf_counter() - t0
+    c = Correspondences(a, out.source_generated.cpu(), b, out.target_generated.cpu())
+    return c, offset, scale, seconds
+
+
+def union_inlier_ratio(T_n: np.ndarray, c: Correspondences, threshold: float) -> float:
+    """Share of the 2N correspondences with |T_n src - dst| < threshold (normalised units)."""
+    src, dst = c.union()
+    return float((residuals(torch.from_numpy(T_n), torch.from_numpy(src), torch.from_numpy(dst)) < threshold)
+                 .double().mean())
+
+
+def run_pose_solver_dataset(
+    spec: DatasetSpec, pairs: Any, indices: Sequence[int], registrar: Registrar, options: BenchOptions,
+    solvers: dict[str, Solver], progress: tqdm | None = None,
+) -> tuple[list[dict[str, Any]], dict[str, list[float]]]:
+    """Records (one per pair and solver) and per-pair lists (cd_floor, gt_inlier_ratio, network_seconds).
+
+    Record: dataset, pair, method (the solver), re_deg, te, cd, seconds (solver only), success,
+    inlier_ratio (union correspondences within the inlier threshold of the estimate), error on failure.
+    gt_inlier_ratio: the same share at the true pose (how good the generated correspondences are).
+    """
+    cfg = registrar.config
+    warm, *_ = generate(registrar, pairs[indices[0]]["source"], pairs[indices[0]]["target"])
+    for solve in solvers.values():  # first-call costs (allocations, thread pools) stay out of the timings
+        solve(warm, cfg.pdsac, cfg.seed)
+    records: list[dict[str, Any]] = []
+    per_pair: dict[str, list[float]] = {"cd_floor": [], "gt_inlier_ratio": [], "network_seconds": []}
+    for i in indices:
+        item = pairs[i]
+        src, tgt = item["source"].astype(np.float64), item["target"].astype(np.float64)
+        T_gt = np.asarray(item["transform"], dtype=np.float64)
+        rng = np.random.default_rng((options.seed, i))  # the CD subsets of `suites.run_dataset`
+        src_cd, tgt_cd = _cd_subset(src, options.cd_points, rng), _cd_subset(tgt, options.cd_points, rng)
+        per_pair["cd_floor"].append(chamfer_distance(apply_transform(T_gt, src_cd), tgt_cd))
+        try:
+            c, offset, scale, net_seconds = generate(registrar, item["source"], item["target"])
+            T_gt_n = T_gt.copy()  # the true pose in normalised units (inverse of `denormalize_transform`)
+            T_gt_n[:3, 3] = (T_gt[:3, 3] + T_gt[:3, :3] @ offset - offset) / scale
+            gt_inliers = union_inlier_ratio(T_gt_n, c, cfg.pdsac.inlier_threshold)
+        except Exception as exc:  # noqa: BLE001 - an unusable pair fails every solver, not the run
+            failed, net_seconds, gt_inliers = f"{type(exc).__name__}: {exc}", float("nan"), float("nan")
+        else:
+            failed = None
+        per_pair["gt_inlier_ratio"].append(gt_inliers)
+        per_pair["network_seconds"].append(net_seconds)
+        for name, solve in solvers.items():
+            rec: dict[str, Any] = {"dataset": spec.name, "pair": int(i), "method": name}
+            try:
+                if failed:
+                    raise RuntimeError(f"no correspondences: {failed}")
+                t0 = time.perf_counter()
+                T_n = solve(c, cfg.pdsac, cfg.seed)
+                seconds = time.perf_counter() - t0
+                re, te, cd = evaluate(denormalize_transform(T_n, offset, scale), T_gt, src_cd, tgt_cd)
+                rec.update(re_deg=re, te=te, cd=cd, seconds=seconds, success=spec.success(re, te),
+                           inlier_ratio=union_inlier_ratio(T_n, c, cfg.pdsac.inlier_threshold))
+            except Exception as exc:  # noqa: BLE001 - one solver failing on one pair is a failure, not a crash
+                nan = float("nan")
+                rec.update(re_deg=nan, te=nan, cd=nan, seconds=nan, success=False, error=f"{type(exc).__name__}: {exc}")
+            records.append(rec)
+        if progress is not None:
+            progress.update(1)
+    return records, per_pair
+
+
+def pose_solver_description(cfg: RegistrationConfig, settings: RansacSettings, threads: int) -> str:
+    p = cfg.pdsac
+    return (
+        "The GenReg network runs once per pair (inputs resampled to the model's N and normalised as in the API); "
+        "every solver estimates the pose from the same generated correspondences {A_i -> A_g,i} and "
+        "{B_g,i -> B_i} (2N in all). "
+        f"`pdsac`: the API's `pdsac_bidirectional` ({p.num_hypotheses} hypotheses of {p.sample_size} "
+        f"correspondences per direction, truncated-residual score, refit={p.refit}, seed {cfg.seed}). "
+        "`o3d-ransac`: Open3D `registration_ransac_based_on_correspondence` on the 2N correspondences "
+        f"(ransac_n {settings.ransac_n}, point-to-point, no checkers, at most {settings.max_iteration} "
+        f"iterations, confidence {settings.confidence}; seeded, yet not bit-reproducible from run to run); it "
+        "returns its best minimal-sample transform. "
+        "`o3d-ransac+refit`: that transform refit by least squares on its inliers (PDSAC's refit). "
+        f"Inlier distance {p.inlier_threshold} (unit box of the source) for all; `inliers`: mean share of the 2N "
+        "correspondences within it of the estimate (`ground truth`: of the true pose). "
+        f"Solver ms: solver wall time alone, median, {threads} thread(s); the network's time is not in it."
+    )
+
+
+def run_ablations(
+    suite: str | Suite,
+    checkpoints: dict[str, str] | None = None,
+    options: BenchOptions | None = None,
+    names: Sequence[str] = (POSE_SOLVER,),
+    datasets: Sequence[str] | None = None,
+    max_pairs: int | None = None,
+    progress: bool = True,
+    log: Callable[[str], None] = print,
+    ransac: RansacSettings = RansacSettings(),
+) -> BenchRun:
+    """Run ablations (only 'pose-solver' so far) on the suite's datasets; a `BenchRun` with `ablations` only.
+
+    Section: name, title, description, column, order (row order), settings, datasets (per dataset:
+    title, kind, units, checkpoint, num_points, success, pairs, available_pairs, indices, points_per_cloud
+    and the per-pair lists of `run_pose_solver_dataset`), records (see `run_pose_solver_dataset`).
+    """
+    unknown = sorted(set(names) - {POSE_SOLVER})
+    if unknown:
+        raise ValueError(f"unknown ablations {unknown}; known: {[POSE_SOLVER]}")
+    suite_name, spec_suite, options = resolve_suite(suite, options)
+    checkpoints = {**DEFAULT_CHECKPOINTS, **(checkpoints or {})}
+    load_start = os.getloadavg()[0]
+    names_ds = [n for n in spec_suite.counts if datasets is None or n in datasets]
+    plan = plan_pairs(spec_suite, names_ds, options, max_pairs)
+    cfg = RegistrationConfig(seed=options.seed)
+    skipped: list[str] = []
+    registrars: dict[str, Registrar] = {}
+    for kind in sorted({spec.kind for spec, _, _ in plan}):
+        try:
+            registrars[kind] = Registrar.from_checkpoint(checkpoints[kind], cfg)
+        except CheckpointError as exc:
+            skipped.append(f"Ablations skipped on {kind} datasets: {exc}")
+            log(skipped[-1])
+    solvers = pose_solvers(ransac)
+    section: dict[str, Any] = {
+        "name": POSE_SOLVER, "title": POSE_SOLVER_TITLE, "column": "solver", "order": list(solvers),
+        "description": pose_solver_description(cfg, ransac, options.threads),
+        "settings": {"pdsac": asdict(cfg.pdsac), "ransac": asdict(ransac), "seed": cfg.seed},
+        "datasets": {}, "records": [],
+    }
+    runnable = [(s, p, ix) for s, p, ix in plan if s.kind in registrars]
+    bar = tqdm(total=sum(len(ix) for _, _, ix in runnable), unit="pair", disable=not progress)
+    for spec, pairs, indices in runnable:
+        bar.set_description(f"{POSE_SOLVER} {spec.name}")
+        registrar = registrars[spec.kind]
+        records, per_pair = run_pose_solver_dataset(spec, pairs, indices, registrar, options, solvers, bar)
+        section["records"] += records
+        section["datasets"][spec.name] = {
+            "title": spec.title, "kind": spec.kind, "units": spec.units, "checkpoint": checkpoints[spec.kind],
+            "num_points": registrar.num_points, "success": asdict(spec.success), "pairs": len(indices),
+            "available_pairs": len(pairs), "indices": list(indices),
+            "points_per_cloud": len(pairs[indices[0]]["source"]), **per_pair,
+        }
+    bar.close()
+    meta = run_meta(suite_name, options, [], checkpoints, load_start)
+    meta["ablations"] = list(names)
+    return BenchRun(meta, {}, [], [], skipped, [section])

@@ -1,0 +1,80 @@
+"""Rotation-invariant point encoder (our lever, `ModelConfig.encoder = "ppf"`).
+
+The paper's GCNN sees raw coordinates, so its features change when a cloud rotates and the network
+must learn rotation from data: slow on 2 CPU cores (MODEL_CARD.md). This encoder sees only
+quantities that a rigid motion leaves unchanged, so the features of A and of B = R A + t agree
+wherever the surfaces agree, and matching them finds correspondences at any rotation:
+
+- per edge (i, j), j among the k nearest neighbours of i, with d = x_j - x_i and unoriented local
+  normals n_i, n_j (smallest eigenvector of the neighbourhood covariance): the point-pair feature
+  (|d|, |n_i . d^|, |n_j . d^|, |n_i . n_j|) (PPF, as in PPFNet / RPM-Net, sign-free);
+- per point: the square roots of the neighbourhood covariance eigenvalues (local shape) and the
+  distance to the cloud's centroid (inputs are centred).
+
+Edge MLP + max over neighbours, then one edge convolution in feature space on the same graph (two
+hops of context). Output (B, N, C). Geometry is computed without gradient: the inputs are data.
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import nn
+
+from genreg_core.model.gcnn import EdgeConv, knn_indices
+from genreg_core.model.layers import point_mlp
+
+
+def gather_neighbours(values: torch.Tensor, neighbours: torch.Tensor) -> torch.Tensor:
+    """values (B, N, C), neighbours (B, N, k) -> (B, N, k, C)."""
+    B, N, k = neighbours.shape
+    flat = neighbours.reshape(B, N * k, 1).expand(-1, -1, values.shape[-1])
+    return torch.gather(values, 1, flat).reshape(B, N, k, -1)
+
+
+@torch.no_grad()
+def invariant_geometry(points: torch.Tensor, neighbours: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Rigid-motion invariants of centred (B, N, 3) clouds on a kNN graph (B, N, k).
+
+    Returns edge features (B, N, k, 4) and point features (B, N, 4), as described in the module doc.
+    """
+    nb = gather_neighbours(points, neighbours)  # (B, N, k, 3)
+    centred = nb - nb.mean(dim=2, keepdim=True)
+    cov = centred.transpose(-1, -2) @ centred / neighbours.shape[-1]
+    evals, evecs = torch.linalg.eigh(cov)  # ascending
+    normals = evecs[..., 0]  # (B, N, 3), sign arbitrary
+    d = nb - points[:, :, None]
+    dist = torch.linalg.norm(d, dim=-1, keepdim=True)
+    u = d / dist.clamp_min(1e-9)
+    n_j = gather_neighbours(normals, neighbours)
+    edge = torch.cat([
+        dist,
+        (u * normals[:, :, None]).sum(-1, keepdim=True).abs(),
+        (u * n_j).sum(-1, keepdim=True).abs(),
+        (normals[:, :, None] * n_j).sum(-1, keepdim=True).abs(),
+    ], dim=-1)
+    point = torch.cat([evals.clamp_min(0).sqrt(), torch.linalg.norm(points, dim=-1, keepdim=True)], dim=-1)
+    return edge, point
+
+
+class InvariantEncoder(nn.Module):
+    """PPF edge MLP -> max over k, point invariants appended, then an edge convolution in feature
+    space: (B, N, 3) centred cloud -> (B, N, out_channels), unchanged by rotating the input."""
+
+    def __init__(self, out_channels: int, k: int, norm: str = "group", scale: float = 10.0) -> None:
+        super().__init__()
+        self.k = k
+        self.scale = scale  # lengths are multiplied by this (unit-box inputs: spacing ~0.05 -> 0.5)
+        self.edge_mlp = point_mlp((4, 32, 64), norm=norm)
+        self.point_mlp = point_mlp((64 + 4, 64), norm=norm)
+        self.context = EdgeConv(64, out_channels, k, norm=norm)
+
+    def forward(self, points: torch.Tensor) -> torch.Tensor:
+        neighbours = knn_indices(points, self.k)
+        edge, point = invariant_geometry(points, neighbours)
+        edge = torch.cat([edge[..., :1] * self.scale, edge[..., 1:]], dim=-1)
+        point = torch.cat([point[..., :3] * self.scale, point[..., 3:] * self.scale / 5.0], dim=-1)
+        B, N, k, _ = edge.shape
+        h = self.edge_mlp(edge.reshape(B, N * k, 4).transpose(1, 2))  # (B, 64, N k)
+        h = h.reshape(B, -1, N, k).amax(dim=-1)  # (B, 64, N)
+        h = self.point_mlp(torch.cat([h, point.transpose(1, 2)], dim=1)).transpose(1, 2)  # (B, N, 64)
+        return self.context(h, neighbours)
