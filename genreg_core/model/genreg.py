@@ -85,8 +85,8 @@ class SoftPointer(nn.Module):
     """Attention of each point onto the other cloud's points (both in one frame): cosine similarity of
     learned query/key features (each centred over its cloud) times a learned sharpness (starts at
     `sharpness`), minus a Gaussian distance kernel of learned width (sigma 0: no kernel, features
-    alone). Training returns the weighted mean point (a soft pick of the other cloud's points);
-    inference (eval mode) returns the best-matching point itself."""
+    alone). Returns the best-matching point of the other cloud (gradients flow through the weighted
+    mean, straight-through) and the log weights."""
 
     def __init__(self, channels: int, dim: int, sigma: float, sharpness: float = 10.0) -> None:
         super().__init__()
@@ -108,12 +108,14 @@ class SoftPointer(nn.Module):
         if self.spatial:
             logits = logits - torch.cdist(x, y).square() / (2.0 * self.log_sigma.exp().square())
         log_w = torch.log_softmax(logits, dim=-1)
-        if self.training:
-            return log_w.exp() @ y, log_w
-        # Inference: the best match itself, a real point of the other cloud. A soft mean of several
-        # candidate matches lands between them, off the surface, and PDSAC then counts it an outlier.
-        best = log_w.argmax(dim=-1, keepdim=True)
-        return torch.gather(y, 1, best.expand(-1, -1, 3)), log_w
+        # The output is the best match itself, a real point of the other cloud: a soft mean of several
+        # candidates lands between them, off the surface. Training passes gradients through the soft
+        # mean (straight-through), so the decoder learns to refine the same points it sees at inference.
+        best = torch.gather(y, 1, log_w.argmax(dim=-1, keepdim=True).expand(-1, -1, 3))
+        if not self.training:
+            return best, log_w
+        soft = log_w.exp() @ y
+        return best + (soft - soft.detach()), log_w
 
 
 def feature_interaction(f_a: torch.Tensor, f_b: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
