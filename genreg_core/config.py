@@ -48,6 +48,7 @@ class ModelConfig:
     attention_sigma: float = 0.05  # initial width of its distance kernel, unit-box units (learned); 0: no kernel
     encoder: str = "xyz"  # "xyz": the paper's GCNN on coordinates; "ppf": rotation-invariant point-pair features
     offset_limit: float = 0.0  # decoder offsets squashed to |d| < this (L tanh(d / L)); 0: unbounded
+    decoder_offsets: bool = True  # False ("attention" only): A_g is the pointer's pick, the decoder idles
     tnet: bool = True  # the paper's T-Net; off: identity (an invariant encoder does not need it)
 
     def __post_init__(self) -> None:
@@ -58,6 +59,8 @@ class ModelConfig:
         _check(self.prealign in ("none", "pca"), "model.prealign must be 'none' or 'pca'")
         _check(self.norm in ("none", "group"), "model.norm must be 'none' or 'group'")
         _check(self.encoder in ("xyz", "ppf"), "model.encoder must be 'xyz' or 'ppf'")
+        _check(self.decoder_offsets or self.interaction == "attention",
+               "model.decoder_offsets: false needs interaction 'attention' (the pointer generates the points)")
         _check(self.offset_limit >= 0, "model.offset_limit must be >= 0")
         _check(self.attention_sigma >= 0, "model.attention_sigma must be >= 0")
         _check(self.interaction in ("global", "local", "attention"),

@@ -3,7 +3,8 @@
 
     python scripts/bench_speed.py --threads 2 --repeats 20
 
-For N = 512, 1024 and 2048: an untrained GenReg model of that N (speed does not depend on the weights)
+For N = 512, 1024 and 2048: an untrained GenReg model of that N (speed does not depend on the weights;
+`--checkpoint` times a trained model, and its architecture, at its own N instead)
 registers the same pairs as Open3D point-to-point ICP (from identity) and FPFH + RANSAC, in this run,
 batch 1, with the given thread count; medians over the pairs. Pairs: ModelNet40 unseen categories
 (unit box, paper transform) for N <= 1024 (the shapes have 1024 points), 7-Scenes redkitchen
@@ -34,6 +35,8 @@ def parse_args() -> argparse.Namespace:
     p.add_argument("--sizes", type=int, nargs="+", default=[512, 1024, 2048])
     p.add_argument("--frame-repeats", type=int, default=3, help="repeats of the 300k-point frame pair")
     p.add_argument("--batch", type=int, default=16, help="batched network + PDSAC throughput (0: skip)")
+    p.add_argument("--checkpoint", help="time this checkpoint (name or path) at its own N instead of untrained "
+                   "paper-architecture models at --sizes")
     p.add_argument("--json", help="also write the figures to this JSON file")
     return p.parse_args()
 
@@ -64,8 +67,13 @@ def main() -> int:
           f"1-min load average {load_start:.1f} on {os.cpu_count()} CPUs (other jobs included)")
 
     def registrar(n: int) -> Registrar:
+        if args.checkpoint:
+            return Registrar.from_checkpoint(args.checkpoint, RegistrationConfig(seed=0))
         torch.manual_seed(0)
         return Registrar(GenRegNet(ModelConfig(num_points=n)), RegistrationConfig(seed=0))
+
+    if args.checkpoint:
+        args.sizes = [registrar(0).num_points]
 
     unit, metric = BaselineParams.unit_box(args.threads), BaselineParams.metric_scene(args.threads)
     redkitchen = RGBDSequence.redkitchen()
@@ -106,7 +114,8 @@ def main() -> int:
         print(f"| {r['N']} | {r['pairs']} | {r['total_ms']:.1f} | {r['preprocess_ms']:.1f} | {r['network_ms']:.1f} | "
               f"{r['pdsac_ms']:.1f} | {r['postprocess_ms']:.1f} | {r['icp_ms']:.1f} | {r['fpfh_ransac_ms']:.1f} | "
               f"{r['total_ms'] / r['icp_ms']:.1f}x | {r['total_ms'] / r['fpfh_ransac_ms']:.2f}x | {batched} | {goal} |")
-    print("(ms; GenReg = network + PDSAC end to end through Registrar.register, untrained weights)")
+    weights = f"checkpoint {args.checkpoint}" if args.checkpoint else "untrained paper-architecture weights"
+    print(f"(ms; GenReg = network + PDSAC end to end through Registrar.register, {weights})")
 
     # A real frame pair at full resolution, metres: the API resamples to N; baselines downsample themselves.
     n_frame = 1024 if 1024 in args.sizes else args.sizes[0]

@@ -6,7 +6,7 @@ import torch
 
 from genreg_core.checkpoint import load_checkpoint, save_checkpoint
 from genreg_core.config import ModelConfig
-from genreg_core.errors import CheckpointError
+from genreg_core.errors import CheckpointError, ConfigError
 from genreg_core.geometry import apply_transform, random_transform
 from genreg_core.model.discriminator import Discriminator
 from genreg_core.model.gcnn import EdgeConv, knn_indices
@@ -184,3 +184,19 @@ def test_attention_pointer_picks_real_points_and_passes_gradients_through_the_so
 
     assert float(nearest(picked).max()) < 1e-5 and float(nearest(trained.detach()).max()) < 1e-5
     assert float(net.pointer.query.weight.grad.abs().sum()) > 0  # the soft weights still learn
+
+
+def test_without_decoder_offsets_the_generated_points_are_the_pointers_picks():
+    torch.manual_seed(0)
+    base = {**SMALL.__dict__, "encoder": "ppf", "tnet": False, "interaction": "attention", "attention_sigma": 0.0}
+    net = GenRegNet(ModelConfig(**{**base, "decoder_offsets": False})).eval()
+    torch.nn.init.normal_(net.decoder.net[-1].weight)  # a decoder that would move the points
+    a, b = torch.rand(1, 64, 3), torch.rand(1, 64, 3)
+    with torch.no_grad():
+        out = net(a, b)
+    b0 = b - b.mean(1, keepdim=True)
+    log_w_a, _ = out.match_logits
+    picks = b0[0, log_w_a[0].argmax(-1)] + b.mean(1)[0]
+    assert torch.allclose(out.source_generated[0], picks, atol=1e-6)
+    with pytest.raises(ConfigError):
+        ModelConfig(**{**base, "interaction": "global", "decoder_offsets": False})

@@ -173,7 +173,10 @@ class GenRegNet(nn.Module):
             match = (log_w_a, log_w_b)
             inputs_a.append(base_a - a1)
             inputs_b.append(base_b - b0)
-        offsets = self.decoder(torch.cat([torch.cat(inputs_a, -1), torch.cat(inputs_b, -1)], 0))
+        if cfg.decoder_offsets:
+            offsets = self.decoder(torch.cat([torch.cat(inputs_a, -1), torch.cat(inputs_b, -1)], 0))
+        else:  # the pointer's picks are the generated points (measured better; MODEL_CARD.md)
+            offsets = torch.zeros_like(torch.cat([a1, b0], 0))
         if cfg.offset_limit > 0:  # the decoder refines the pointer's output; it cannot undo it
             offsets = cfg.offset_limit * torch.tanh(offsets / cfg.offset_limit)
         d_a, d_b = offsets.chunk(2, dim=0)
