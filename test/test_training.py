@@ -120,3 +120,31 @@ def test_torchrun_two_cpu_processes_with_gloo(tmp_path):
     assert proc.returncode == 0, proc.stderr[-2000:]
     state = torch.load(tmp_path / "ddp" / "last.ckpt", weights_only=True)
     assert state["iteration"] == 3
+
+
+def test_relative_loss_has_a_finite_gradient_where_generated_points_coincide():
+    gen = torch.rand(1, 10, 3)
+    gen[0, 4] = gen[0, 3]  # two points picked the same match
+    gen.requires_grad_(True)
+    L.relative_loss(torch.rand(1, 10, 3), gen).sum().backward()
+    assert torch.isfinite(gen.grad).all()
+
+
+def test_a_non_finite_gradient_skips_the_update_and_is_counted(tmp_path, monkeypatch):
+    trainer = Trainer(tiny_config(tmp_path), show_progress=False)
+    before = {k: v.clone() for k, v in trainer.generator.state_dict().items()}
+    real = trainer.generator_losses
+
+    def poisoned(*args, **kw):
+        terms = real(*args, **kw)
+        terms["relative"] = terms["relative"] * float("nan")
+        return terms
+
+    monkeypatch.setattr(trainer, "generator_losses", poisoned)
+    trainer.train_iteration()
+    assert trainer.skipped_steps == 1
+    assert all(torch.equal(before[k], v) for k, v in trainer.generator.state_dict().items())
+    monkeypatch.setattr(trainer, "generator_losses", real)
+    trainer.train_iteration()
+    assert trainer.skipped_steps == 1
+    assert any(not torch.equal(before[k], v) for k, v in trainer.generator.state_dict().items())

@@ -47,9 +47,10 @@ def random_subset(points: torch.Tensor, size: int | None, generator: torch.Gener
     return points[:, idx]
 
 
-def edge_lengths(points: torch.Tensor) -> torch.Tensor:
-    """|P_i - P_(i+1) mod N| for (B, N, 3) -> (B, N)."""
-    return torch.linalg.norm(points - points.roll(-1, dims=1), dim=-1)
+def edge_lengths(points: torch.Tensor, eps: float = 1e-12) -> torch.Tensor:
+    """|P_i - P_(i+1) mod N| for (B, N, 3) -> (B, N). Smoothed by eps under the root: generated points
+    can coincide (two points picking the same match), where the plain norm's gradient is 0/0 = NaN."""
+    return ((points - points.roll(-1, dims=1)).square().sum(-1) + eps).sqrt()
 
 
 def relative_loss(points: torch.Tensor, generated: torch.Tensor) -> torch.Tensor:

@@ -36,7 +36,7 @@ INFERENCE_PDSAC = PDSACConfig()  # validation measures what the registration API
 
 LOG_FIELDS = (
     "iteration", "generator_steps", "elapsed_s", "lr", "max_angle_deg", "loss", "absolute", "relative",
-    "cycle", "adversarial", "transformation", "correspondence", "tnet", "matching", "discriminator",
+    "cycle", "adversarial", "transformation", "correspondence", "tnet", "matching", "discriminator", "skipped_steps",
     "val_re_mean", "val_re_median", "val_te_mean", "val_cd_mean",
     "val2_re_mean", "val2_re_median", "val2_te_mean", "val2_cd_mean",
 )
@@ -85,6 +85,7 @@ class Trainer:
         self.train_set, self.val_set = build_pair_sets(cfg)
         self.val_batches = validation_batches(self.val_set, cfg.validation_pairs, s.batch_size)
         self.iteration = 0
+        self.skipped_steps = 0  # generator updates skipped for a non-finite gradient
         self.elapsed = 0.0
         self.best_re = math.inf
         if resume and (self.out_dir / "last.ckpt").exists():
@@ -124,10 +125,14 @@ class Trainer:
             loss = sum(getattr(cfg.loss, k) * v for k, v in terms.items())
             self.opt_g.zero_grad(set_to_none=True)
             loss.backward()
-            nn.utils.clip_grad_norm_(self.generator.parameters(), cfg.schedule.grad_clip)
-            self.opt_g.step()
+            grad_norm = nn.utils.clip_grad_norm_(self.generator.parameters(), cfg.schedule.grad_clip)
+            if torch.isfinite(grad_norm):
+                self.opt_g.step()
+            else:  # one bad batch must not poison the weights: skip the update, count it
+                self.skipped_steps += 1
             self.sched_g.step()
-            logs = {k: float(v.detach()) for k, v in terms.items()} | {"loss": float(loss.detach())}
+            logs = {k: float(v.detach()) for k, v in terms.items()} | {"loss": float(loss.detach()),
+                                                                     "skipped_steps": float(self.skipped_steps)}
             fake = torch.cat([out.source_generated, out.target_generated]).detach()
         else:
             with torch.no_grad():
@@ -224,7 +229,7 @@ class Trainer:
             "generator": self.generator.state_dict(), "discriminator": self.discriminator.state_dict(),
             "opt_g": self.opt_g.state_dict(), "opt_d": self.opt_d.state_dict(),
             "sched_g": self.sched_g.state_dict(), "iteration": self.iteration, "elapsed": self.elapsed,
-            "best_re": self.best_re, "torch_rng": torch.get_rng_state(),
+            "best_re": self.best_re, "torch_rng": torch.get_rng_state(), "skipped_steps": self.skipped_steps,
             "config": _plain(dataclasses.asdict(self.cfg)),
         }
 
@@ -237,6 +242,7 @@ class Trainer:
         self.sched_g.load_state_dict(state["sched_g"])
         self.iteration, self.elapsed, self.best_re = state["iteration"], state["elapsed"], state["best_re"]
         torch.set_rng_state(state["torch_rng"])
+        self.skipped_steps = int(state.get("skipped_steps", 0))
 
     def save(self) -> None:
         """Atomically write last.ckpt (full state, stays out of git) and last.pt (fp16 weights)."""
@@ -265,7 +271,7 @@ class Trainer:
             logs = self.train_iteration()
             self.elapsed = start_elapsed + time.perf_counter() - start_wall
             for k, v in logs.items():
-                running[k] = v if k not in running else 0.9 * running[k] + 0.1 * v
+                running[k] = v if k not in running or k == "skipped_steps" else 0.9 * running[k] + 0.1 * v
             bar.update(1)
             bar.set_postfix({k: f"{running[k]:.3g}" for k in ("loss", "transformation", "discriminator") if k in running})
             it = self.iteration
