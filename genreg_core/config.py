@@ -48,6 +48,7 @@ class ModelConfig:
     attention_sigma: float = 0.05  # initial width of its distance kernel, unit-box units (learned); 0: no kernel
     encoder: str = "xyz"  # "xyz": the paper's GCNN on coordinates; "ppf": rotation-invariant point-pair features
     offset_limit: float = 0.0  # decoder offsets squashed to |d| < this (L tanh(d / L)); 0: unbounded
+    mixers: bool = True  # the paper's two mixer layers; False (ablation): a linear layer on the GCNN features
     decoder_offsets: bool = True  # False ("attention" only): A_g is the pointer's pick, the decoder idles
     tnet: bool = True  # the paper's T-Net; off: identity (an invariant encoder does not need it)
 

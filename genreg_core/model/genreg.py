@@ -61,8 +61,10 @@ class PointMixerEncoder(nn.Module):
             else EdgeConv(3, cfg.gcnn_channels, cfg.k_neighbors, norm=cfg.norm)
         )
         h1, h2 = cfg.mixer_hidden
-        self.mixer1 = MixerLayer(cfg.num_points, cfg.gcnn_channels, h1, cfg.feature_dim)
-        self.mixer2 = MixerLayer(cfg.num_points, cfg.feature_dim, h2, cfg.feature_dim)
+        self.mixer1: nn.Module = MixerLayer(cfg.num_points, cfg.gcnn_channels, h1, cfg.feature_dim)
+        self.mixer2: nn.Module = MixerLayer(cfg.num_points, cfg.feature_dim, h2, cfg.feature_dim)
+        if not cfg.mixers:  # ablation "DGCNN only": a linear layer on the GCNN features
+            self.mixer1, self.mixer2 = nn.Linear(cfg.gcnn_channels, cfg.feature_dim), nn.Identity()
 
     def forward(self, points: torch.Tensor) -> torch.Tensor:
         return self.mixer2(self.mixer1(self.gcnn(points)))
@@ -138,8 +140,8 @@ class GenRegNet(nn.Module):
         self.encoder = PointMixerEncoder(self.config)
         extra = {"global": 0, "local": 3 + self.config.feature_dim, "attention": 3}[self.config.interaction]
         self.decoder = Decoder(2 * self.config.feature_dim + 3 + extra, self.config.decoder_channels)
-        if self.config.encoder == "ppf":  # token mixing starts as a no-op: random point order is not signal
-            for mixer in (self.encoder.mixer1, self.encoder.mixer2):
+        if self.config.encoder == "ppf" and self.config.mixers:  # token mixing starts as a no-op: random
+            for mixer in (self.encoder.mixer1, self.encoder.mixer2):  # point order is not signal
                 zero_last_layer(mixer.token_mlp)
         if self.config.interaction == "attention":
             self.pointer = SoftPointer(self.config.feature_dim, self.config.attention_dim, self.config.attention_sigma)
