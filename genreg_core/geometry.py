@@ -114,7 +114,8 @@ def kabsch(
     """Weighted least-squares rigid transform with target ~ R source + t (proper, det R = +1).
 
     source, target: (..., K, 3); weights: (..., K) non-negative or None. Returns (..., 4, 4).
-    Batched over leading dims and differentiable (SVD of the 3x3 cross-covariance).
+    Batched over leading dims and differentiable (SVD of the 3x3 cross-covariance); sets with equal
+    singular values (degenerate, e.g. coinciding points) get no gradient instead of a NaN one.
     """
     if weights is None:
         weights = torch.ones(source.shape[:-1], dtype=source.dtype, device=source.device)
@@ -122,6 +123,12 @@ def kabsch(
     mu_s = (w[..., None] * source).sum(dim=-2)
     mu_t = (w[..., None] * target).sum(dim=-2)
     cov = ((source - mu_s[..., None, :]) * w[..., None]).transpose(-1, -2) @ (target - mu_t[..., None, :])
+    if cov.requires_grad:  # the SVD's gradient is 1 / (s_i^2 - s_j^2): not finite for equal singular
+        with torch.no_grad():  # values (e.g. a minimal set whose points coincide); no gradient from those
+            sv = torch.linalg.svdvals(cov)
+            gaps = torch.stack([sv[..., 0] - sv[..., 1], sv[..., 1] - sv[..., 2]], dim=-1).amin(dim=-1)
+            degenerate = gaps <= 1e-6 * sv[..., 0].clamp_min(1e-12)
+        cov = torch.where(degenerate[..., None, None], cov.detach(), cov)
     U, _, Vh = torch.linalg.svd(cov)
     d = torch.sign(torch.linalg.det(Vh.transpose(-1, -2) @ U.transpose(-1, -2)))
     d = torch.where(d == 0, torch.ones_like(d), d)

@@ -125,3 +125,19 @@ def test_rotation_error_is_accurate_for_tiny_angles():
     R = Rotation.from_rotvec([0.0, 0.0, np.deg2rad(0.01)]).as_matrix()
     assert np.isclose(rotation_error_deg(R, np.eye(3)), 0.01, rtol=1e-6)
     assert np.isclose(rotation_error_deg(Rotation.from_rotvec([np.pi * 0.999, 0, 0]).as_matrix(), np.eye(3)), 179.82)
+
+
+def test_kabsch_gradient_is_finite_for_degenerate_sets_and_flows_for_good_ones():
+    import torch
+
+    from genreg_core.geometry import kabsch
+
+    src = torch.rand(2, 4, 3, dtype=torch.float64)
+    dst = torch.rand(2, 4, 3, dtype=torch.float64)
+    dst[0] = dst[0, :1].expand(4, 3).clone()  # every point of set 0 picked the same match
+    dst.requires_grad_(True)
+    kabsch(src, dst).sum().backward()
+    assert torch.isfinite(dst.grad).all()
+    # Set 0: only the translation's centroid term (d sum(t) / d dst = 1/4 each); set 1 also rotates.
+    assert torch.allclose(dst.grad[0], torch.full((4, 3), 0.25, dtype=torch.float64))
+    assert not torch.allclose(dst.grad[1], torch.full((4, 3), 0.25, dtype=torch.float64))

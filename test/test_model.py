@@ -200,3 +200,16 @@ def test_without_decoder_offsets_the_generated_points_are_the_pointers_picks():
     assert torch.allclose(out.source_generated[0], picks, atol=1e-6)
     with pytest.raises(ConfigError):
         ModelConfig(**{**base, "interaction": "global", "decoder_offsets": False})
+
+
+def test_encoder_ablation_without_mixers_is_point_order_equivariant():
+    """Without token mixing (the GCNN-only ablation) permuting the input permutes the features."""
+    torch.manual_seed(0)
+    net = GenRegNet(ModelConfig(**{**SMALL.__dict__, "encoder": "ppf", "mixers": False})).eval()
+    x = torch.rand(1, 64, 3)
+    x = x - x.mean(1, keepdim=True)
+    perm = torch.randperm(64)
+    with torch.no_grad():
+        f, f_perm = net.encoder(x), net.encoder(x[:, perm])
+    assert f.shape == (1, 64, SMALL.feature_dim)
+    assert torch.allclose(f[:, perm], f_perm, atol=1e-5)
