@@ -62,3 +62,35 @@ def untrained_checkpoint(tmp_path_factory: pytest.TempPathFactory) -> Path:
     path = tmp_path_factory.mktemp("ckpt") / "untrained_n256.pt"
     save_checkpoint(GenRegNet(ModelConfig(num_points=256)), path)
     return path
+
+
+def _reject_constant(name: str) -> None:
+    raise ValueError(f"invalid JSON constant {name}")
+
+
+@pytest.fixture
+def run_bench_cli():
+    """Run `genreg-bench ARGS --out OUT` in its own process (its thread settings apply before OpenMP
+    loads; inherited OMP_* dropped); skip when the benchmark data is missing. Returns (process, results.json
+    parsed with NaN/Infinity rejected)."""
+    import json
+    import subprocess
+    import sys
+
+    from genreg_core.bench.suites import DATASETS, BenchOptions
+    from genreg_core.errors import DataNotFoundError
+
+    try:
+        DATASETS["modelnet-unseen-clean"].build(BenchOptions())
+    except DataNotFoundError as exc:
+        pytest.skip(f"benchmark data missing: {exc}")
+
+    def run(args: list[str], out: Path, timeout: float) -> tuple[subprocess.CompletedProcess, dict]:
+        env = {k: v for k, v in os.environ.items() if not k.startswith("OMP_")}
+        cmd = [sys.executable, "-m", "genreg_core.bench.cli", *args, "--out", str(out)]
+        proc = subprocess.run(cmd, check=False, env=env, capture_output=True, text=True, timeout=timeout,
+                              cwd=Path(__file__).resolve().parent.parent)
+        assert proc.returncode == 0, proc.stderr[-3000:]
+        return proc, json.loads((out / "results.json").read_text(), parse_constant=_reject_constant)
+
+    return run

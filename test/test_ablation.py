@@ -3,10 +3,6 @@
 
 from __future__ import annotations
 
-import json
-import os
-import subprocess
-import sys
 from pathlib import Path
 
 import numpy as np
@@ -16,9 +12,7 @@ from scipy.spatial.transform import Rotation
 
 from genreg_core.bench import report
 from genreg_core.bench.ablation import POSE_SOLVER_TITLE, Correspondences, generate, pose_solvers
-from genreg_core.bench.suites import DATASETS, BenchOptions
 from genreg_core.config import PDSACConfig, RegistrationConfig
-from genreg_core.errors import DataNotFoundError
 from genreg_core.geometry import denormalize_transform, kabsch
 from genreg_core.metrics import transform_errors
 from genreg_core.registration import Registrar
@@ -89,23 +83,11 @@ def test_pdsac_row_is_the_registrar_estimate(untrained_checkpoint):
     np.testing.assert_allclose(denormalize_transform(T_n, offset, scale), expected, atol=1e-9)
 
 
-def _reject_constant(name):
-    raise ValueError(f"invalid JSON constant {name}")
-
-
-def test_cli_ablation_writes_the_pose_solver_table(untrained_checkpoint, tmp_path):
+def test_cli_ablation_writes_the_pose_solver_table(untrained_checkpoint, tmp_path, run_bench_cli):
     """`genreg-bench --ablation pose-solver` on 2 pairs, in its own process (thread settings before OpenMP)."""
-    try:
-        DATASETS["modelnet-unseen-clean"].build(BenchOptions())
-    except DataNotFoundError as exc:
-        pytest.skip(f"benchmark data missing: {exc}")
-    env = {k: v for k, v in os.environ.items() if not k.startswith("OMP_")}
-    cmd = [sys.executable, "-m", "genreg_core.bench.cli", "--ablation", "pose-solver", "--datasets",
-           "modelnet-unseen-clean", "--max-pairs", "2", "--checkpoint", str(untrained_checkpoint), "--threads", "1",
-           "--no-progress", "--out", str(tmp_path)]
-    proc = subprocess.run(cmd, check=False, env=env, capture_output=True, text=True, timeout=120, cwd=REPO)
-    assert proc.returncode == 0, proc.stderr[-3000:]
-    data = json.loads((tmp_path / "results.json").read_text(), parse_constant=_reject_constant)
+    _, data = run_bench_cli(["--ablation", "pose-solver", "--datasets", "modelnet-unseen-clean", "--max-pairs", "2",
+                             "--checkpoint", str(untrained_checkpoint), "--threads", "1", "--no-progress"],
+                            tmp_path, timeout=120)
     assert data["meta"]["threads"]["OMP_NUM_THREADS"] == "1" and not data["records"] and not data["skipped"]
     (section,) = data["ablations"]
     assert section["name"] == "pose-solver" and list(section["datasets"]) == ["modelnet-unseen-clean"]

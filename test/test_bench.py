@@ -2,11 +2,7 @@
 
 from __future__ import annotations
 
-import json
 import math
-import os
-import subprocess
-import sys
 from pathlib import Path
 
 import numpy as np
@@ -15,7 +11,7 @@ from scipy.spatial.transform import Rotation
 
 from genreg_core.bench import report
 from genreg_core.bench.baselines import BASELINES, BaselineParams
-from genreg_core.bench.suites import DATASETS, BenchOptions, Suite, run_benchmark, select_indices
+from genreg_core.bench.suites import DATASETS, Suite, run_benchmark, select_indices
 from genreg_core.errors import DataNotFoundError
 from genreg_core.metrics import transform_errors
 
@@ -90,23 +86,11 @@ def test_roc_auc_and_threshold_split_on_hand_made_numbers():
     assert split == {"threshold": 0.5, "n_above": 2, "n_below": 2, "success_above": 0.5, "success_below": 0.5}
 
 
-def _reject_constant(name):
-    raise ValueError(f"invalid JSON constant {name}")
-
-
-def test_smoke_suite_end_to_end(untrained_checkpoint, tmp_path):
+def test_smoke_suite_end_to_end(untrained_checkpoint, tmp_path, run_bench_cli):
     """`genreg-bench --suite smoke` in its own process, so its thread settings apply before OpenMP loads."""
-    try:
-        DATASETS["modelnet-unseen-clean"].build(BenchOptions())
-    except DataNotFoundError as exc:
-        pytest.skip(f"benchmark data missing: {exc}")
-    env = {k: v for k, v in os.environ.items() if not k.startswith("OMP_")}
-    cmd = [sys.executable, "-m", "genreg_core.bench.cli", "--suite", "smoke", "--checkpoint", str(untrained_checkpoint),
-           "--out", str(tmp_path), "--threads", "2", "--no-progress", "--max-pairs", "2"]
-    proc = subprocess.run(cmd, check=False, env=env, capture_output=True, text=True, timeout=300, cwd=REPO)
-    assert proc.returncode == 0, proc.stderr[-3000:]
+    proc, data = run_bench_cli(["--suite", "smoke", "--checkpoint", str(untrained_checkpoint), "--threads", "2",
+                                "--no-progress", "--max-pairs", "2"], tmp_path, timeout=300)
     assert "smoke suite:" in proc.stdout and "with 2 threads" in proc.stdout
-    data = json.loads((tmp_path / "results.json").read_text(), parse_constant=_reject_constant)
     threads = data["meta"]["threads"]
     assert threads["requested"] == threads["torch"] == 2 and threads["OMP_NUM_THREADS"] == "2"
     assert threads["OMP_WAIT_POLICY"] == "PASSIVE" and not data["skipped"]

@@ -41,6 +41,7 @@ from genreg_core.bench.suites import (
     Suite,
     _cd_subset,
     evaluate,
+    failure_fields,
     plan_pairs,
     resolve_suite,
     run_meta,
@@ -207,8 +208,7 @@ def run_pose_solver_dataset(
                 rec.update(re_deg=re, te=te, cd=cd, seconds=seconds, success=spec.success(re, te),
                            inlier_ratio=union_inlier_ratio(T_n, c, cfg.pdsac.inlier_threshold))
             except Exception as exc:  # noqa: BLE001 - one solver failing on one pair is a failure, not a crash
-                nan = float("nan")
-                rec.update(re_deg=nan, te=nan, cd=nan, seconds=nan, success=False, error=f"{type(exc).__name__}: {exc}")
+                rec.update(failure_fields(exc))
             records.append(rec)
         if progress is not None:
             progress.update(1)

@@ -126,17 +126,18 @@ def _pct(x: float | None) -> str:
 
 
 def dataset_table(rows: Sequence[dict[str, Any]], units: str) -> str:
-    d = 4
     head = (f"| method | CD ({units}) | RE mean (deg) | RE median (deg) | TE mean ({units}) | "
             f"TE median ({units}) | success | ms/pair median |")
     lines = [head, "|" + "---|" * 8]
-    for r in rows:
-        err = f" ({r['errors']} errors)" if r["errors"] else ""
-        lines.append(
-            f"| {r['method']}{err} | {_f(r['cd'], d)} | {_f(r['re_mean'], 2)} | {_f(r['re_median'], 2)} | "
-            f"{_f(r['te_mean'], d)} | {_f(r['te_median'], d)} | {_pct(r['success'])} | {_f(r['ms_median'], 1)} |"
-        )
+    lines += [f"{_metric_cells(r)} {_f(r['ms_median'], 1)} |" for r in rows]
     return "\n".join(lines)
+
+
+def _metric_cells(r: dict[str, Any], digits: int = 4) -> str:
+    """`| method (errors) | CD | RE mean | RE median | TE mean | TE median | success |` of a summary row."""
+    err = f" ({r['errors']} errors)" if r["errors"] else ""
+    return (f"| {r['method']}{err} | {_f(r['cd'], digits)} | {_f(r['re_mean'], 2)} | {_f(r['re_median'], 2)} | "
+            f"{_f(r['te_mean'], digits)} | {_f(r['te_median'], digits)} | {_pct(r['success'])} |")
 
 
 def ablation_rows(section: dict[str, Any], dataset: str) -> list[dict[str, Any]]:
@@ -154,18 +155,11 @@ def ablation_rows(section: dict[str, Any], dataset: str) -> list[dict[str, Any]]
 
 
 def ablation_table(rows: Sequence[dict[str, Any]], units: str, column: str, threads: int) -> str:
-    d = 4
     head = (f"| {column} | CD ({units}) | RE mean (deg) | RE median (deg) | TE mean ({units}) | "
             f"TE median ({units}) | success | inliers | {column} ms median "
             f"({threads} thread{'s' if threads != 1 else ''}) |")
     lines = [head, "|" + "---|" * 9]
-    for r in rows:
-        err = f" ({r['errors']} errors)" if r["errors"] else ""
-        lines.append(
-            f"| {r['method']}{err} | {_f(r['cd'], d)} | {_f(r['re_mean'], 2)} | {_f(r['re_median'], 2)} | "
-            f"{_f(r['te_mean'], d)} | {_f(r['te_median'], d)} | {_pct(r['success'])} | {_pct(r.get('inliers'))} | "
-            f"{_f(r['ms_median'], 2)} |"
-        )
+    lines += [f"{_metric_cells(r)} {_pct(r.get('inliers'))} | {_f(r['ms_median'], 2)} |" for r in rows]
     return "\n".join(lines)
 
 

@@ -185,6 +185,13 @@ def select_indices(total: int, count: int | None) -> list[int]:
     return sorted({round(x) for x in np.linspace(0, total - 1, count)})
 
 
+def failure_fields(exc: Exception) -> dict[str, Any]:
+    """Record fields of a registration that raised: NaN figures, no success, the error named."""
+    nan = float("nan")
+    return {"re_deg": nan, "te": nan, "cd": nan, "seconds": nan, "success": False,
+            "error": f"{type(exc).__name__}: {exc}"}
+
+
 @dataclass
 class MethodOutput:
     """transformation: 4x4 target_from_source; seconds: wall time; extra: JSON-ready method details."""
@@ -271,8 +278,7 @@ def run_dataset(
                 re, te, cd = evaluate(out.transformation, T_gt, src_cd, tgt_cd)
                 rec.update(re_deg=re, te=te, cd=cd, seconds=out.seconds, success=success(re, te), **out.extra)
             except Exception as exc:  # noqa: BLE001 - one method failing on one pair is a failure, not a crash
-                nan = float("nan")
-                rec.update(re_deg=nan, te=nan, cd=nan, seconds=nan, success=False, error=f"{type(exc).__name__}: {exc}")
+                rec.update(failure_fields(exc))
             records.append(rec)
         if progress is not None:
             progress.update(1)
