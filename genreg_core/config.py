@@ -48,7 +48,9 @@ class ModelConfig:
     attention_sigma: float = 0.05  # initial width of its distance kernel, unit-box units (learned); 0: no kernel
     encoder: str = "xyz"  # "xyz": the paper's GCNN on coordinates; "ppf": rotation-invariant point-pair features
     offset_limit: float = 0.0  # decoder offsets squashed to |d| < this (L tanh(d / L)); 0: unbounded
-    mixers: bool = True  # the paper's two mixer layers; False (ablation): a linear layer on the GCNN features
+    backbone: str = "pointmixer"  # "pointmixer": GCNN + the paper's two mixer layers; ablations: "dgcnn"
+    # (GCNN features alone, then a linear layer), "pointnet2" (PointNet++-style set abstraction and feature
+    # propagation on the same invariant inputs; needs encoder "ppf")
     decoder_offsets: bool = True  # False ("attention" only): A_g is the pointer's pick, the decoder idles
     tnet: bool = True  # the paper's T-Net; off: identity (an invariant encoder does not need it)
 
@@ -60,6 +62,9 @@ class ModelConfig:
         _check(self.prealign in ("none", "pca"), "model.prealign must be 'none' or 'pca'")
         _check(self.norm in ("none", "group"), "model.norm must be 'none' or 'group'")
         _check(self.encoder in ("xyz", "ppf"), "model.encoder must be 'xyz' or 'ppf'")
+        _check(self.backbone in ("pointmixer", "dgcnn", "pointnet2"),
+               "model.backbone must be 'pointmixer', 'dgcnn' or 'pointnet2'")
+        _check(self.backbone != "pointnet2" or self.encoder == "ppf", "model.backbone 'pointnet2' needs encoder 'ppf'")
         _check(self.decoder_offsets or self.interaction == "attention",
                "model.decoder_offsets: false needs interaction 'attention' (the pointer generates the points)")
         _check(self.offset_limit >= 0, "model.offset_limit must be >= 0")

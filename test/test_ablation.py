@@ -1,5 +1,6 @@
-"""Pose-solver ablation: every solver recovers a known transform from outlier-laden correspondences, the
-`pdsac` row is the API's own estimate, and `genreg-bench --ablation pose-solver` writes its table."""
+"""Ablations. Pose solver: every solver recovers a known transform from outlier-laden correspondences, the
+`pdsac` row is the API's own estimate, and `genreg-bench --ablation pose-solver` writes its table.
+Backbone: the generation errors against a known transform, and `genreg-bench --ablation backbone`."""
 
 from __future__ import annotations
 
@@ -11,7 +12,14 @@ import torch
 from scipy.spatial.transform import Rotation
 
 from genreg_core.bench import report
-from genreg_core.bench.ablation import POSE_SOLVER_TITLE, Correspondences, generate, pose_solvers
+from genreg_core.bench.ablation import (
+    BACKBONE_TITLE,
+    POSE_SOLVER_TITLE,
+    Correspondences,
+    generate,
+    generation_errors,
+    pose_solvers,
+)
 from genreg_core.config import PDSACConfig, RegistrationConfig
 from genreg_core.geometry import denormalize_transform, kabsch
 from genreg_core.metrics import transform_errors
@@ -104,3 +112,39 @@ def test_cli_ablation_writes_the_pose_solver_table(untrained_checkpoint, tmp_pat
         assert f"| {name} | " in md
     assert not (tmp_path / "re_cdf.png").exists()  # no method comparison, no comparison plots
     assert report.markdown(report.load_run(tmp_path / "results.json")) == md  # --from-json re-renders it
+
+
+def test_generation_errors_against_a_known_transform():
+    """A_g = T A exactly: both errors 0. Every A_g point shifted by 0.03 (normalised units, scale 2):
+    MSE = (0.06)^2 in dataset units, and the Chamfer distance is positive but below the shift."""
+    T = _known_transform()
+    rng = np.random.default_rng(0)
+    offset, scale = np.array([1.0, -2.0, 0.5]), 2.0
+    a_world = rng.random((300, 3)) * 2.0 + offset
+    moved = a_world @ T[:3, :3].T + T[:3, 3]
+    norm = lambda x: torch.from_numpy(((x - offset) / scale).astype(np.float64))[None]
+    exact = Correspondences(norm(a_world), norm(moved), norm(moved), norm(a_world))
+    cd, mse = generation_errors(exact, T, offset, scale)
+    assert cd < 1e-12 and mse < 1e-24
+    shifted = Correspondences(exact.a, exact.a_gen + torch.tensor([0.03, 0.0, 0.0], dtype=torch.float64),
+                              exact.b, exact.b_gen)
+    cd, mse = generation_errors(shifted, T, offset, scale)
+    assert mse == pytest.approx(0.06**2, rel=1e-9) and 0 < cd < 0.06
+
+
+def test_cli_backbone_ablation_writes_its_table(untrained_checkpoint, tmp_path, run_bench_cli):
+    """Two named checkpoints (one of them twice under another name: identical figures), 2 pairs."""
+    _, data = run_bench_cli(["--ablation", "backbone", "--backbones", f"one={untrained_checkpoint}",
+                             f"two={untrained_checkpoint}", "missing=/no/such.pt", "--datasets",
+                             "modelnet-unseen-clean", "--max-pairs", "2", "--threads", "1", "--no-progress"],
+                            tmp_path, timeout=120)
+    (section,) = data["ablations"]
+    assert section["name"] == "backbone" and section["order"] == ["one", "two"]
+    assert any("missing" in line for line in data["skipped"])
+    records = section["records"]
+    assert len(records) == 4 and all("error" not in r and r["gen_mse"] > 0 and r["gen_cd"] > 0 for r in records)
+    by_name = {name: [r for r in records if r["method"] == name] for name in ("one", "two")}
+    for a, b in zip(by_name["one"], by_name["two"], strict=True):
+        assert a["re_deg"] == b["re_deg"] and a["gen_mse"] == b["gen_mse"]
+    md = (tmp_path / "report.md").read_text()
+    assert f"## {BACKBONE_TITLE}" in md and "| gen CD | gen MSE |" in md and "| one | " in md

@@ -134,12 +134,14 @@ def test_both_generated_clouds_are_in_the_other_frame_with_pca_prealignment():
     assert torch.allclose(R, torch.tensor(T[:3, :3], dtype=torch.float32), atol=1e-3)
 
 
-def test_ppf_encoder_features_are_unchanged_by_rotation_and_point_order():
+@pytest.mark.parametrize("backbone", ["pointmixer", "pointnet2"])
+def test_ppf_encoder_features_are_unchanged_by_rotation_and_point_order(backbone):
     torch.manual_seed(0)
     from scipy.spatial.transform import Rotation
 
-    cfg = SMALL.__class__(**{**SMALL.__dict__, "encoder": "ppf", "tnet": False})
-    encoder = GenRegNet(cfg).encoder.gcnn.eval()
+    cfg = SMALL.__class__(**{**SMALL.__dict__, "encoder": "ppf", "tnet": False, "backbone": backbone})
+    net = GenRegNet(cfg)
+    encoder = (net.encoder.gcnn if backbone == "pointmixer" else net.encoder).eval()
     a = torch.rand(2, 64, 3, dtype=torch.float64)
     a = a - a.mean(1, keepdim=True)
     R = torch.tensor(Rotation.from_euler("xyz", [40, -25, 70], degrees=True).as_matrix())
@@ -205,7 +207,7 @@ def test_without_decoder_offsets_the_generated_points_are_the_pointers_picks():
 def test_encoder_ablation_without_mixers_is_point_order_equivariant():
     """Without token mixing (the GCNN-only ablation) permuting the input permutes the features."""
     torch.manual_seed(0)
-    net = GenRegNet(ModelConfig(**{**SMALL.__dict__, "encoder": "ppf", "mixers": False})).eval()
+    net = GenRegNet(ModelConfig(**{**SMALL.__dict__, "encoder": "ppf", "backbone": "dgcnn"})).eval()
     x = torch.rand(1, 64, 3)
     x = x - x.mean(1, keepdim=True)
     perm = torch.randperm(64)
@@ -213,3 +215,39 @@ def test_encoder_ablation_without_mixers_is_point_order_equivariant():
         f, f_perm = net.encoder(x), net.encoder(x[:, perm])
     assert f.shape == (1, 64, SMALL.feature_dim)
     assert torch.allclose(f[:, perm], f_perm, atol=1e-5)
+
+
+def test_farthest_point_sampling_picks_the_farthest_point_each_time():
+    """Each pick is the point farthest (scipy cdist) from those already picked; the first is the farthest
+    from the origin; no point is picked twice."""
+    from scipy.spatial.distance import cdist
+
+    from genreg_core.model.pointnet2 import farthest_point_sample
+
+    x = torch.rand(2, 200, 3, dtype=torch.float64) - 0.5
+    idx = farthest_point_sample(x, 30).numpy()
+    for cloud, picks in zip(x.numpy(), idx, strict=True):
+        assert len(set(picks)) == 30 and picks[0] == np.argmax(np.linalg.norm(cloud, axis=1))
+        for m in range(1, 30):
+            nearest_pick = cdist(cloud, cloud[picks[:m]]).min(axis=1)
+            assert picks[m] == np.argmax(nearest_pick)
+
+
+def test_knn_query_matches_brute_force():
+    from scipy.spatial.distance import cdist
+
+    from genreg_core.model.gcnn import knn_query
+
+    q, p = torch.rand(2, 30, 3, dtype=torch.float64), torch.rand(2, 80, 3, dtype=torch.float64)
+    dist, idx = knn_query(q, p, 3)
+    for b in range(2):
+        d = cdist(q[b].numpy(), p[b].numpy())
+        np.testing.assert_array_equal(idx[b].numpy(), np.argsort(d, axis=1)[:, :3])
+        np.testing.assert_allclose(dist[b].numpy(), np.sort(d, axis=1)[:, :3], atol=1e-12)
+
+
+def test_pointnet2_backbone_needs_the_invariant_inputs():
+    with pytest.raises(ConfigError, match="pointnet2"):
+        ModelConfig(**{**SMALL.__dict__, "backbone": "pointnet2"})
+    with pytest.raises(ConfigError, match="backbone"):
+        ModelConfig(**{**SMALL.__dict__, "backbone": "transformer"})

@@ -1,4 +1,14 @@
-"""Issue 5's pose-solver ablation: PDSAC against Open3D's RANSAC on the same generated correspondences.
+"""Issue 5's ablations: the pose solver (PDSAC against Open3D's RANSAC on the same generated
+correspondences) and the backbone (PointMixer against DGCNN-only and PointNet++-style encoders, trained
+on the same budget).
+
+Backbone (`run_backbone_dataset`): each named checkpoint registers every pair as the API's `genreg`
+method does (network, then `pdsac_bidirectional`); records hold RE, TE, CD and success as in the suites,
+`seconds` = network + PDSAC, and the generation quality of the paper's ablation tables: `gen_cd`, the
+Chamfer distance, and `gen_mse`, the mean squared point error |A_g,i - T_gt A_i|^2, between the generated
+A_g and the truly moved source T_gt A (the N network inputs, dataset units).
+
+Pose solver:
 
 Per pair the GenReg network runs once, on inputs prepared as `Registrar.register` prepares them (source
 and target resampled to the model's N with the config's seed, one similarity from the source's bounding
@@ -35,6 +45,7 @@ from tqdm import tqdm
 
 from genreg_core.bench.suites import (
     DEFAULT_CHECKPOINTS,
+    OBJECT,
     BenchOptions,
     BenchRun,
     DatasetSpec,
@@ -57,6 +68,11 @@ reg = o3d.pipelines.registration
 
 POSE_SOLVER = "pose-solver"
 POSE_SOLVER_TITLE = "Ablation: pose solver (same generated correspondences)"
+BACKBONE = "backbone"
+BACKBONE_TITLE = "Ablation: backbone (same training budget)"
+ABLATIONS = (POSE_SOLVER, BACKBONE)
+# `scripts/ablation_backbone.sh` trains these (config/train_modelnet40_ppf.yaml, model.backbone = name)
+DEFAULT_BACKBONES = {name: f"runs/abl_{name}/last.pt" for name in ("pointmixer", "dgcnn", "pointnet2")}
 
 
 @dataclass(frozen=True)
@@ -155,6 +171,59 @@ def generate(
     return c, offset, scale, seconds
 
 
+def pair_truth(item: dict[str, Any], index: int, options: BenchOptions) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
+    """(T_gt float64, source CD subset, target CD subset, CD at the true pose): the CD points of
+    `suites.run_dataset` for this pair, so that the CDs compare across tables."""
+    src, tgt = item["source"].astype(np.float64), item["target"].astype(np.float64)
+    T_gt = np.asarray(item["transform"], dtype=np.float64)
+    rng = np.random.default_rng((options.seed, index))
+    src_cd, tgt_cd = _cd_subset(src, options.cd_points, rng), _cd_subset(tgt, options.cd_points, rng)
+    return T_gt, src_cd, tgt_cd, chamfer_distance(apply_transform(T_gt, src_cd), tgt_cd)
+
+
+def generation_errors(c: Correspondences, T_gt: np.ndarray, offset: np.ndarray, scale: float) -> tuple[float, float]:
+    """(Chamfer distance, mean squared point error) between A_g and T_gt A, dataset units."""
+    a = c.a[0].double().numpy() * scale + offset
+    a_gen = c.a_gen[0].double().numpy() * scale + offset
+    truth = apply_transform(T_gt, a)
+    return chamfer_distance(a_gen, truth), float(np.mean(np.sum((a_gen - truth) ** 2, axis=1)))
+
+
+def run_backbone_dataset(
+    spec: DatasetSpec, pairs: Any, indices: Sequence[int], registrars: dict[str, Registrar],
+    options: BenchOptions, progress: tqdm | None = None,
+) -> tuple[list[dict[str, Any]], dict[str, list[float]]]:
+    """Records (one per pair and backbone: dataset, pair, method = backbone name, re_deg, te, cd, seconds,
+    network_seconds, success, gen_cd, gen_mse, or error) and the per-pair list cd_floor."""
+    first = pairs[indices[0]]
+    for registrar in registrars.values():  # first-call costs stay out of the timings
+        warm, *_ = generate(registrar, first["source"], first["target"])
+        solve_pdsac(warm, registrar.config.pdsac, registrar.config.seed)
+    records: list[dict[str, Any]] = []
+    floors: list[float] = []
+    for i in indices:
+        item = pairs[i]
+        T_gt, src_cd, tgt_cd, floor = pair_truth(item, i, options)
+        floors.append(floor)
+        for name, registrar in registrars.items():
+            rec: dict[str, Any] = {"dataset": spec.name, "pair": int(i), "method": name}
+            try:
+                c, offset, scale, net_seconds = generate(registrar, item["source"], item["target"])
+                t0 = time.perf_counter()
+                T_n = solve_pdsac(c, registrar.config.pdsac, registrar.config.seed)
+                seconds = net_seconds + time.perf_counter() - t0
+                re, te, cd = evaluate(denormalize_transform(T_n, offset, scale), T_gt, src_cd, tgt_cd)
+                gen_cd, gen_mse = generation_errors(c, T_gt, offset, scale)
+                rec.update(re_deg=re, te=te, cd=cd, seconds=seconds, network_seconds=net_seconds,
+                           success=spec.success(re, te), gen_cd=gen_cd, gen_mse=gen_mse)
+            except Exception as exc:  # noqa: BLE001 - one model failing on one pair is a failure, not a crash
+                rec.update(failure_fields(exc))
+            records.append(rec)
+        if progress is not None:
+            progress.update(1)
+    return records, {"cd_floor": floors}
+
+
 def union_inlier_ratio(T_n: np.ndarray, c: Correspondences, threshold: float) -> float:
     """Share of the 2N correspondences with |T_n src - dst| < threshold (normalised units)."""
     src, dst = c.union()
@@ -180,11 +249,8 @@ def run_pose_solver_dataset(
     per_pair: dict[str, list[float]] = {"cd_floor": [], "gt_inlier_ratio": [], "network_seconds": []}
     for i in indices:
         item = pairs[i]
-        src, tgt = item["source"].astype(np.float64), item["target"].astype(np.float64)
-        T_gt = np.asarray(item["transform"], dtype=np.float64)
-        rng = np.random.default_rng((options.seed, i))  # the CD subsets of `suites.run_dataset`
-        src_cd, tgt_cd = _cd_subset(src, options.cd_points, rng), _cd_subset(tgt, options.cd_points, rng)
-        per_pair["cd_floor"].append(chamfer_distance(apply_transform(T_gt, src_cd), tgt_cd))
+        T_gt, src_cd, tgt_cd, floor = pair_truth(item, i, options)
+        per_pair["cd_floor"].append(floor)
         try:
             c, offset, scale, net_seconds = generate(registrar, item["source"], item["target"])
             T_gt_n = T_gt.copy()  # the true pose in normalised units (inverse of `denormalize_transform`)
@@ -234,6 +300,42 @@ def pose_solver_description(cfg: RegistrationConfig, settings: RansacSettings, t
     )
 
 
+def backbone_description(cfg: RegistrationConfig, backbones: dict[str, str], threads: int) -> str:
+    p = cfg.pdsac
+    return (
+        "Each row is a GenReg object model whose per-point encoder is the named backbone, trained with the same "
+        "recipe, data, seed and number of iterations (`scripts/ablation_backbone.sh`): `pointmixer` = PPF "
+        "encoder + edge convolution + the paper's two mixer layers (the shipped architecture); `dgcnn` = the "
+        "same without the mixer layers; `pointnet2` = PointNet++-style set abstraction (every point, then "
+        "N/4 farthest-point centres) and feature propagation on the same point-pair features. "
+        f"Checkpoints: {', '.join(f'`{n}` {c}' for n, c in backbones.items())}. "
+        f"Registration as the API's `genreg` method: network, then PDSAC ({p.num_hypotheses} hypotheses, "
+        f"seed {cfg.seed}). Generation: `gen CD` and `gen MSE` between A_g and T_gt A (the N network inputs). "
+        f"ms: network + PDSAC, median, batch 1, {threads} thread(s)."
+    )
+
+
+def _load_registrars(checkpoints: dict[str, str], cfg: RegistrationConfig, what: str,
+                     skipped: list[str], log: Callable[[str], None]) -> dict[str, Registrar]:
+    """Registrars of the loadable checkpoints; each one that fails to load is skipped with a message."""
+    registrars: dict[str, Registrar] = {}
+    for name, checkpoint in checkpoints.items():
+        try:
+            registrars[name] = Registrar.from_checkpoint(checkpoint, cfg)
+        except CheckpointError as exc:
+            skipped.append(f"Ablation skipped {what} {name}: {exc}")
+            log(skipped[-1])
+    return registrars
+
+
+def _dataset_info(spec: DatasetSpec, pairs: Any, indices: Sequence[int], checkpoint: str, num_points: int) -> dict[str, Any]:
+    return {
+        "title": spec.title, "kind": spec.kind, "units": spec.units, "checkpoint": checkpoint,
+        "num_points": num_points, "success": asdict(spec.success), "pairs": len(indices),
+        "available_pairs": len(pairs), "indices": list(indices), "points_per_cloud": len(pairs[indices[0]]["source"]),
+    }
+
+
 def run_ablations(
     suite: str | Suite,
     checkpoints: dict[str, str] | None = None,
@@ -244,51 +346,71 @@ def run_ablations(
     progress: bool = True,
     log: Callable[[str], None] = print,
     ransac: RansacSettings = RansacSettings(),
+    backbones: dict[str, str] | None = None,
 ) -> BenchRun:
-    """Run ablations (only 'pose-solver' so far) on the suite's datasets; a `BenchRun` with `ablations` only.
+    """Run ablations ('pose-solver', 'backbone') on the suite's datasets; a `BenchRun` with `ablations` only.
 
-    Section: name, title, description, column, order (row order), settings, datasets (per dataset:
+    Section: name, title, description, column, order (row order), extras (table columns beyond the suites':
+    record key, header, format, optional per-dataset ground-truth list), settings, datasets (per dataset:
     title, kind, units, checkpoint, num_points, success, pairs, available_pairs, indices, points_per_cloud
-    and the per-pair lists of `run_pose_solver_dataset`), records (see `run_pose_solver_dataset`).
+    and per-pair lists), records. The backbone ablation runs on object datasets only, with `backbones`
+    (name -> checkpoint; default `DEFAULT_BACKBONES`).
     """
-    unknown = sorted(set(names) - {POSE_SOLVER})
+    unknown = sorted(set(names) - set(ABLATIONS))
     if unknown:
-        raise ValueError(f"unknown ablations {unknown}; known: {[POSE_SOLVER]}")
+        raise ValueError(f"unknown ablations {unknown}; known: {list(ABLATIONS)}")
     suite_name, spec_suite, options = resolve_suite(suite, options)
     checkpoints = {**DEFAULT_CHECKPOINTS, **(checkpoints or {})}
+    backbones = dict(backbones or DEFAULT_BACKBONES)
     load_start = os.getloadavg()[0]
     names_ds = [n for n in spec_suite.counts if datasets is None or n in datasets]
     plan = plan_pairs(spec_suite, names_ds, options, max_pairs)
     cfg = RegistrationConfig(seed=options.seed)
     skipped: list[str] = []
-    registrars: dict[str, Registrar] = {}
-    for kind in sorted({spec.kind for spec, _, _ in plan}):
-        try:
-            registrars[kind] = Registrar.from_checkpoint(checkpoints[kind], cfg)
-        except CheckpointError as exc:
-            skipped.append(f"Ablations skipped on {kind} datasets: {exc}")
-            log(skipped[-1])
-    solvers = pose_solvers(ransac)
-    section: dict[str, Any] = {
-        "name": POSE_SOLVER, "title": POSE_SOLVER_TITLE, "column": "solver", "order": list(solvers),
-        "description": pose_solver_description(cfg, ransac, options.threads),
-        "settings": {"pdsac": asdict(cfg.pdsac), "ransac": asdict(ransac), "seed": cfg.seed},
-        "datasets": {}, "records": [],
-    }
-    runnable = [(s, p, ix) for s, p, ix in plan if s.kind in registrars]
-    bar = tqdm(total=sum(len(ix) for _, _, ix in runnable), unit="pair", disable=not progress)
-    for spec, pairs, indices in runnable:
-        bar.set_description(f"{POSE_SOLVER} {spec.name}")
-        registrar = registrars[spec.kind]
-        records, per_pair = run_pose_solver_dataset(spec, pairs, indices, registrar, options, solvers, bar)
-        section["records"] += records
-        section["datasets"][spec.name] = {
-            "title": spec.title, "kind": spec.kind, "units": spec.units, "checkpoint": checkpoints[spec.kind],
-            "num_points": registrar.num_points, "success": asdict(spec.success), "pairs": len(indices),
-            "available_pairs": len(pairs), "indices": list(indices),
-            "points_per_cloud": len(pairs[indices[0]]["source"]), **per_pair,
+    sections: list[dict[str, Any]] = []
+    if POSE_SOLVER in names:
+        kinds = {kind: checkpoints[kind] for kind in sorted({spec.kind for spec, _, _ in plan})}
+        registrars = _load_registrars(kinds, cfg, "pose-solver on", skipped, log)
+        solvers = pose_solvers(ransac)
+        section: dict[str, Any] = {
+            "name": POSE_SOLVER, "title": POSE_SOLVER_TITLE, "column": "solver", "order": list(solvers),
+            "extras": [{"key": "inlier_ratio", "header": "inliers", "format": "pct", "truth": "gt_inlier_ratio"}],
+            "description": pose_solver_description(cfg, ransac, options.threads),
+            "settings": {"pdsac": asdict(cfg.pdsac), "ransac": asdict(ransac), "seed": cfg.seed},
+            "datasets": {}, "records": [],
         }
-    bar.close()
+        runnable = [(s, p, ix) for s, p, ix in plan if s.kind in registrars]
+        bar = tqdm(total=sum(len(ix) for _, _, ix in runnable), unit="pair", disable=not progress)
+        for spec, pairs, indices in runnable:
+            bar.set_description(f"{POSE_SOLVER} {spec.name}")
+            registrar = registrars[spec.kind]
+            records, per_pair = run_pose_solver_dataset(spec, pairs, indices, registrar, options, solvers, bar)
+            section["records"] += records
+            section["datasets"][spec.name] = {
+                **_dataset_info(spec, pairs, indices, checkpoints[spec.kind], registrar.num_points), **per_pair}
+        bar.close()
+        sections.append(section)
+    if BACKBONE in names:
+        registrars = _load_registrars(backbones, cfg, "backbone", skipped, log)
+        section = {
+            "name": BACKBONE, "title": BACKBONE_TITLE, "column": "backbone", "order": list(registrars),
+            "extras": [{"key": "gen_cd", "header": "gen CD", "format": "f4"},
+                       {"key": "gen_mse", "header": "gen MSE", "format": "f5"}],
+            "description": backbone_description(cfg, backbones, options.threads),
+            "settings": {"pdsac": asdict(cfg.pdsac), "seed": cfg.seed, "backbones": backbones},
+            "datasets": {}, "records": [],
+        }
+        runnable = [(s, p, ix) for s, p, ix in plan if s.kind == OBJECT] if registrars else []
+        bar = tqdm(total=sum(len(ix) for _, _, ix in runnable), unit="pair", disable=not progress)
+        for spec, pairs, indices in runnable:
+            bar.set_description(f"{BACKBONE} {spec.name}")
+            records, per_pair = run_backbone_dataset(spec, pairs, indices, registrars, options, bar)
+            section["records"] += records
+            num_points = next(iter(registrars.values())).num_points
+            section["datasets"][spec.name] = {
+                **_dataset_info(spec, pairs, indices, "see the rows", num_points), **per_pair}
+        bar.close()
+        sections.append(section)
     meta = run_meta(suite_name, options, [], checkpoints, load_start)
     meta["ablations"] = list(names)
-    return BenchRun(meta, {}, [], [], skipped, [section])
+    return BenchRun(meta, {}, [], [], skipped, sections)

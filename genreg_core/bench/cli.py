@@ -5,7 +5,8 @@
     genreg-bench --ablation pose-solver --datasets modelnet-unseen-clean --max-pairs 20 --out runs/ablation
 
 --ablation runs issue 5's ablations on the suite's datasets instead of the method comparison
-(pose-solver: PDSAC against Open3D RANSAC on the same generated correspondences).
+(pose-solver: PDSAC against Open3D RANSAC on the same generated correspondences; backbone: GenReg
+models with different encoders, --backbones NAME=CHECKPOINT ..., on the object datasets).
 Checkpoints: objects (ModelNet40) use --object-checkpoint (default: shipped "modelnet40"), scenes
 (7-Scenes, SUN3D) use --scene-checkpoint (default: shipped "7scenes"); --checkpoint sets both. A missing
 checkpoint skips the GenReg methods on those datasets with a message. Threads are fixed before torch
@@ -20,7 +21,7 @@ import os
 import sys
 import time
 
-ABLATIONS = ("pose-solver",)  # `ablation.run_ablations` names (not imported here: torch loads after threads)
+ABLATIONS = ("pose-solver", "backbone")  # `ablation.ABLATIONS` (not imported here: torch loads after threads)
 
 
 def configure_threads(threads: int) -> None:
@@ -58,7 +59,13 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     p.add_argument("--from-json", help="re-render the report of an earlier run's results.json (no registration)")
     p.add_argument("--ablation", nargs="+", choices=ABLATIONS,
                    help="run these ablations on the suite's datasets instead of the method comparison")
-    return p.parse_args(argv)
+    p.add_argument("--backbones", nargs="+", metavar="NAME=CHECKPOINT",
+                   help="backbone ablation rows (default: pointmixer, dgcnn, pointnet2 from runs/abl_<name>/last.pt, "
+                        "as scripts/ablation_backbone.sh trains them)")
+    args = p.parse_args(argv)
+    if args.backbones and any("=" not in b for b in args.backbones):
+        p.error("--backbones takes NAME=CHECKPOINT pairs")
+    return args
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -99,8 +106,9 @@ def main(argv: list[str] | None = None) -> int:
         if args.ablation:
             from genreg_core.bench.ablation import run_ablations
 
+            backbones = dict(b.split("=", 1) for b in args.backbones) if args.backbones else None
             run = run_ablations(args.suite, checkpoints, options, args.ablation, args.datasets, args.max_pairs,
-                                progress=not args.no_progress, log=log)
+                                progress=not args.no_progress, log=log, backbones=backbones)
         else:
             run = run_benchmark(args.suite, checkpoints, options, args.methods, args.datasets, args.max_pairs,
                                 progress=not args.no_progress, log=log)

@@ -141,25 +141,41 @@ def _metric_cells(r: dict[str, Any], digits: int = 4) -> str:
 
 
 def ablation_rows(section: dict[str, Any], dataset: str) -> list[dict[str, Any]]:
-    """`summarize` rows of one dataset of an ablation section, in the section's row order, plus `inliers`:
-    the mean `inlier_ratio` of the records (ground truth: the mean `gt_inlier_ratio` of the dataset)."""
+    """`summarize` rows of one dataset of an ablation section, in the section's row order, plus the mean of
+    each of the section's `extras` (record keys; the ground-truth row takes the mean of the dataset's
+    `truth` list where the extra names one)."""
     info = section["datasets"][dataset]
     records = [r for r in section["records"] if r["dataset"] == dataset]
     rows = summarize(records, info["cd_floor"])
     for row in rows:
-        values = info.get("gt_inlier_ratio", []) if row["method"] == "ground truth" else \
-            [r.get("inlier_ratio", float("nan")) for r in records if r["method"] == row["method"]]
-        row["inliers"] = _nanstat([float("nan") if v is None else v for v in values], np.mean)
+        for extra in _extras(section):
+            if row["method"] == "ground truth":
+                values = info.get(extra["truth"], []) if "truth" in extra else []
+            else:
+                values = [r.get(extra["key"], float("nan")) for r in records if r["method"] == row["method"]]
+            row[extra["key"]] = _nanstat([float("nan") if v is None else v for v in values], np.mean)
     rank = {name: k for k, name in enumerate(["ground truth", *section.get("order", [])])}
     return sorted(rows, key=lambda r: rank.get(r["method"], len(rank)))
 
 
-def ablation_table(rows: Sequence[dict[str, Any]], units: str, column: str, threads: int) -> str:
+def _extras(section: dict[str, Any]) -> list[dict[str, str]]:
+    """Extra table columns of an ablation section (runs written before `extras` existed: inliers)."""
+    return section.get("extras") or [
+        {"key": "inlier_ratio", "header": "inliers", "format": "pct", "truth": "gt_inlier_ratio"}]
+
+
+def _extra_cell(value: float | None, fmt: str) -> str:
+    return _pct(value) if fmt == "pct" else _f(value, int(fmt[1:]))
+
+
+def ablation_table(section: dict[str, Any], rows: Sequence[dict[str, Any]], units: str, threads: int) -> str:
+    column, extras = section["column"], _extras(section)
     head = (f"| {column} | CD ({units}) | RE mean (deg) | RE median (deg) | TE mean ({units}) | "
-            f"TE median ({units}) | success | inliers | {column} ms median "
-            f"({threads} thread{'s' if threads != 1 else ''}) |")
-    lines = [head, "|" + "---|" * 9]
-    lines += [f"{_metric_cells(r)} {_pct(r.get('inliers'))} | {_f(r['ms_median'], 2)} |" for r in rows]
+            f"TE median ({units}) | success | " + "".join(f"{e['header']} | " for e in extras)
+            + f"{column} ms median ({threads} thread{'s' if threads != 1 else ''}) |")
+    lines = [head, "|" + "---|" * (8 + len(extras))]
+    lines += [f"{_metric_cells(r)} " + "".join(f"{_extra_cell(r.get(e['key']), e['format'])} | " for e in extras)
+              + f"{_f(r['ms_median'], 2)} |" for r in rows]
     return "\n".join(lines)
 
 
@@ -168,16 +184,18 @@ def ablation_markdown(section: dict[str, Any], threads: int) -> list[str]:
     out = ["", f"## {section['title']}", "", section["description"]]
     for name, info in section["datasets"].items():
         sr = info["success"]
+        network = info.get("network_seconds")
         out += [
             "",
             f"### {info['title']}",
             "",
             (f"{info['pairs']} of {info['available_pairs']} pairs, {info['points_per_cloud']} points per source "
              f"cloud, GenReg checkpoint `{info['checkpoint']}` at N = {info['num_points']}, units: {info['units']}; "
-             f"success: RE < {sr['max_re_deg']:g} deg and TE < {sr['max_te']:g}; network (shared, not in the "
-             f"solver times) {1e3 * _nanstat(info['network_seconds'], np.median):.1f} ms median."),
+             f"success: RE < {sr['max_re_deg']:g} deg and TE < {sr['max_te']:g}"
+             + (f"; network (shared, not in the solver times) {1e3 * _nanstat(network, np.median):.1f} ms median."
+                if network else ".")),
             "",
-            ablation_table(ablation_rows(section, name), info["units"], section["column"], threads),
+            ablation_table(section, ablation_rows(section, name), info["units"], threads),
         ]
     return out
 

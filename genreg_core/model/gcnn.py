@@ -16,10 +16,19 @@ def knn_indices(points: torch.Tensor, k: int) -> torch.Tensor:
     A scipy KD-tree per cloud: about half the time of a dense cdist + topk at N = 1024 on 2 cores.
     Indices carry no gradient, so leaving torch here costs nothing in training.
     """
-    clouds = points.detach().cpu().numpy()
+    return knn_query(points, points, k)[1]
+
+
+def knn_query(queries: torch.Tensor, points: torch.Tensor, k: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """For each of (B, M, 3) queries, its k nearest of (B, N, 3) points: distances (B, M, k) and
+    indices (B, M, k), nearest first (scipy KD-tree per cloud; no gradient)."""
     workers = max(1, torch.get_num_threads())
-    idx = np.stack([cKDTree(c).query(c, k=k, workers=workers)[1] for c in clouds])
-    return torch.from_numpy(idx.reshape(points.shape[0], points.shape[1], k)).to(points.device)
+    qs, ps = queries.detach().cpu().numpy(), points.detach().cpu().numpy()
+    found = [cKDTree(p).query(q, k=k, workers=workers) for q, p in zip(qs, ps, strict=True)]
+    B, M = queries.shape[:2]
+    dist = np.stack([d for d, _ in found]).reshape(B, M, k)
+    idx = np.stack([i for _, i in found]).reshape(B, M, k)
+    return (torch.from_numpy(dist).to(queries), torch.from_numpy(idx).to(queries.device))
 
 
 class EdgeConv(nn.Module):

@@ -34,6 +34,7 @@ from genreg_core.model.gcnn import EdgeConv
 from genreg_core.model.invariant import InvariantEncoder
 from genreg_core.model.layers import centroid, zero_last_layer
 from genreg_core.model.mixer import MixerLayer
+from genreg_core.model.pointnet2 import PointNet2Encoder
 from genreg_core.model.prealign import pca_prealign
 from genreg_core.model.tnet import TNet
 
@@ -63,11 +64,18 @@ class PointMixerEncoder(nn.Module):
         h1, h2 = cfg.mixer_hidden
         self.mixer1: nn.Module = MixerLayer(cfg.num_points, cfg.gcnn_channels, h1, cfg.feature_dim)
         self.mixer2: nn.Module = MixerLayer(cfg.num_points, cfg.feature_dim, h2, cfg.feature_dim)
-        if not cfg.mixers:  # ablation "DGCNN only": a linear layer on the GCNN features
+        if cfg.backbone == "dgcnn":  # ablation "DGCNN only": a linear layer on the GCNN features
             self.mixer1, self.mixer2 = nn.Linear(cfg.gcnn_channels, cfg.feature_dim), nn.Identity()
 
     def forward(self, points: torch.Tensor) -> torch.Tensor:
         return self.mixer2(self.mixer1(self.gcnn(points)))
+
+
+def build_encoder(cfg: ModelConfig) -> nn.Module:
+    """The per-point feature extractor `cfg.backbone` names: (B, N, 3) -> (B, N, feature_dim)."""
+    if cfg.backbone == "pointnet2":
+        return PointNet2Encoder(cfg.feature_dim, cfg.k_neighbors, norm=cfg.norm)
+    return PointMixerEncoder(cfg)
 
 
 def nearest_neighbour_context(
@@ -137,10 +145,10 @@ class GenRegNet(nn.Module):
         super().__init__()
         self.config = cfg or ModelConfig()
         self.tnet = TNet(self.config) if self.config.tnet else None
-        self.encoder = PointMixerEncoder(self.config)
+        self.encoder = build_encoder(self.config)
         extra = {"global": 0, "local": 3 + self.config.feature_dim, "attention": 3}[self.config.interaction]
         self.decoder = Decoder(2 * self.config.feature_dim + 3 + extra, self.config.decoder_channels)
-        if self.config.encoder == "ppf" and self.config.mixers:  # token mixing starts as a no-op: random
+        if self.config.encoder == "ppf" and self.config.backbone == "pointmixer":  # token mixing starts as a no-op: random
             for mixer in (self.encoder.mixer1, self.encoder.mixer2):  # point order is not signal
                 zero_last_layer(mixer.token_mlp)
         if self.config.interaction == "attention":

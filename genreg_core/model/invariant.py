@@ -32,49 +32,85 @@ def gather_neighbours(values: torch.Tensor, neighbours: torch.Tensor) -> torch.T
 
 
 @torch.no_grad()
+def local_shape(points: torch.Tensor, neighbours: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Unoriented normals (B, N, 3) and ascending covariance eigenvalues (B, N, 3) of each point's
+    neighbourhood (B, N, k) in (B, N, 3) points."""
+    nb = gather_neighbours(points, neighbours)
+    centred = nb - nb.mean(dim=2, keepdim=True)
+    evals, evecs = torch.linalg.eigh(centred.transpose(-1, -2) @ centred / neighbours.shape[-1])
+    return evecs[..., 0], evals
+
+
+@torch.no_grad()
+def point_pair_features(
+    centres: torch.Tensor, centre_normals: torch.Tensor, others: torch.Tensor, other_normals: torch.Tensor
+) -> torch.Tensor:
+    """Sign-free PPF of each centre (B, M, 3) with its group (B, M, k, 3), normals alike:
+    (|d|, |n_i . d^|, |n_j . d^|, |n_i . n_j|) -> (B, M, k, 4)."""
+    d = others - centres[:, :, None]
+    dist = torch.linalg.norm(d, dim=-1, keepdim=True)
+    u = d / dist.clamp_min(1e-9)
+    n_i = centre_normals[:, :, None]
+    return torch.cat([
+        dist,
+        (u * n_i).sum(-1, keepdim=True).abs(),
+        (u * other_normals).sum(-1, keepdim=True).abs(),
+        (n_i * other_normals).sum(-1, keepdim=True).abs(),
+    ], dim=-1)
+
+
+@torch.no_grad()
 def invariant_geometry(points: torch.Tensor, neighbours: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """Rigid-motion invariants of centred (B, N, 3) clouds on a kNN graph (B, N, k).
 
     Returns edge features (B, N, k, 4) and point features (B, N, 4), as described in the module doc.
     """
-    nb = gather_neighbours(points, neighbours)  # (B, N, k, 3)
-    centred = nb - nb.mean(dim=2, keepdim=True)
-    cov = centred.transpose(-1, -2) @ centred / neighbours.shape[-1]
-    evals, evecs = torch.linalg.eigh(cov)  # ascending
-    normals = evecs[..., 0]  # (B, N, 3), sign arbitrary
-    d = nb - points[:, :, None]
-    dist = torch.linalg.norm(d, dim=-1, keepdim=True)
-    u = d / dist.clamp_min(1e-9)
-    n_j = gather_neighbours(normals, neighbours)
-    edge = torch.cat([
-        dist,
-        (u * normals[:, :, None]).sum(-1, keepdim=True).abs(),
-        (u * n_j).sum(-1, keepdim=True).abs(),
-        (normals[:, :, None] * n_j).sum(-1, keepdim=True).abs(),
-    ], dim=-1)
+    normals, evals = local_shape(points, neighbours)
+    edge = point_pair_features(
+        points, normals, gather_neighbours(points, neighbours), gather_neighbours(normals, neighbours)
+    )
     point = torch.cat([evals.clamp_min(0).sqrt(), torch.linalg.norm(points, dim=-1, keepdim=True)], dim=-1)
     return edge, point
 
 
-class InvariantEncoder(nn.Module):
-    """PPF edge MLP -> max over k, point invariants appended, then an edge convolution in feature
-    space: (B, N, 3) centred cloud -> (B, N, out_channels), unchanged by rotating the input."""
+class PPFStem(nn.Module):
+    """First stage of the invariant encoders: PPF edge MLP -> max over k, point invariants appended:
+    (B, N, 3) centred cloud -> per-point features (B, N, 64), the kNN graph and the normals."""
 
-    def __init__(self, out_channels: int, k: int, norm: str = "group", scale: float = 10.0) -> None:
+    def __init__(self, k: int, norm: str = "group", scale: float = 10.0) -> None:
         super().__init__()
         self.k = k
         self.scale = scale  # lengths are multiplied by this (unit-box inputs: spacing ~0.05 -> 0.5)
         self.edge_mlp = point_mlp((4, 32, 64), norm=norm)
         self.point_mlp = point_mlp((64 + 4, 64), norm=norm)
-        self.context = EdgeConv(64, out_channels, k, norm=norm)
 
-    def forward(self, points: torch.Tensor) -> torch.Tensor:
+    def scaled(self, ppf: torch.Tensor) -> torch.Tensor:
+        """PPF with its length column in network units."""
+        return torch.cat([ppf[..., :1] * self.scale, ppf[..., 1:]], dim=-1)
+
+    def stem(self, points: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         neighbours = knn_indices(points, self.k)
-        edge, point = invariant_geometry(points, neighbours)
-        edge = torch.cat([edge[..., :1] * self.scale, edge[..., 1:]], dim=-1)
-        point = torch.cat([point[..., :3] * self.scale, point[..., 3:] * self.scale / 5.0], dim=-1)
+        normals, evals = local_shape(points, neighbours)
+        edge = self.scaled(point_pair_features(
+            points, normals, gather_neighbours(points, neighbours), gather_neighbours(normals, neighbours)
+        ))
+        point = torch.cat([evals.clamp_min(0).sqrt() * self.scale,
+                           torch.linalg.norm(points, dim=-1, keepdim=True) * self.scale / 5.0], dim=-1)
         B, N, k, _ = edge.shape
         h = self.edge_mlp(edge.reshape(B, N * k, 4).transpose(1, 2))  # (B, 64, N k)
         h = h.reshape(B, -1, N, k).amax(dim=-1)  # (B, 64, N)
         h = self.point_mlp(torch.cat([h, point.transpose(1, 2)], dim=1)).transpose(1, 2)  # (B, N, 64)
+        return h, neighbours, normals
+
+
+class InvariantEncoder(PPFStem):
+    """PPF stem, then an edge convolution in feature space on the same graph: (B, N, 3) centred cloud
+    -> (B, N, out_channels), unchanged by rotating the input."""
+
+    def __init__(self, out_channels: int, k: int, norm: str = "group", scale: float = 10.0) -> None:
+        super().__init__(k, norm, scale)
+        self.context = EdgeConv(64, out_channels, k, norm=norm)
+
+    def forward(self, points: torch.Tensor) -> torch.Tensor:
+        h, neighbours, _ = self.stem(points)
         return self.context(h, neighbours)
