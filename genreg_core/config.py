@@ -98,6 +98,13 @@ class RefineConfig:
     max_iterations: int = 10
     max_correspondence_distance: float = 0.05  # unit-box units (the source's bounding box is 1)
     num_points: int = 5000  # points per cloud for ICP and the fitness measure
+    # Guard against a wrong global estimate (e.g. a symmetric shape flipped): when the confidence after
+    # refinement is below `guard_below`, ICP also runs from the initial guess (identity if none), with the
+    # wide cut-off `guard_distance` and `guard_iterations`; the start whose result overlaps the target
+    # better (fitness) wins. 0 turns the guard off. Chosen on training-split pairs (MODEL_CARD.md).
+    guard_below: float = 0.4
+    guard_distance: float = 0.5  # unit-box units: ICP from the initial guess, as a skilled user runs it
+    guard_iterations: int = 50
 
     def __post_init__(self) -> None:
         _check(
@@ -107,6 +114,9 @@ class RefineConfig:
         _check(self.max_iterations >= 1, "refine.max_iterations must be >= 1")
         _check(self.max_correspondence_distance > 0, "refine.max_correspondence_distance must be > 0")
         _check(self.num_points >= 16, "refine.num_points must be >= 16")
+        _check(0.0 <= self.guard_below <= 1.0, "refine.guard_below must be in [0, 1]")
+        _check(self.guard_distance > 0, "refine.guard_distance must be > 0")
+        _check(self.guard_iterations >= 1, "refine.guard_iterations must be >= 1")
 
 
 @dataclass(frozen=True)

@@ -91,6 +91,21 @@ def refit_on_inliers(
     return T, inliers
 
 
+def union_correspondences(
+    a: torch.Tensor, a_gen: torch.Tensor, b: torch.Tensor, b_gen: torch.Tensor
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """{A_i -> A_g,i} and {B_g,i -> B_i} as one set: (src (B, 2N, 3) in A's frame, dst in B's frame)."""
+    return torch.cat([a, b_gen], dim=1), torch.cat([a_gen, b], dim=1)
+
+
+def union_inlier_share(
+    T: torch.Tensor, a: torch.Tensor, a_gen: torch.Tensor, b: torch.Tensor, b_gen: torch.Tensor, threshold: float
+) -> torch.Tensor:
+    """(B,) share of the union's correspondences that T (B, 4, 4), b ~ T a, maps within `threshold`."""
+    src, dst = union_correspondences(a, a_gen, b, b_gen)
+    return (residuals(T, src, dst) < threshold).to(src.dtype).mean(dim=-1)
+
+
 def pdsac_bidirectional(
     a: torch.Tensor,
     a_gen: torch.Tensor,
@@ -105,8 +120,7 @@ def pdsac_bidirectional(
     """
     res_a = pdsac(a, a_gen, cfg, generator, refit=False)
     res_b = pdsac(b, b_gen, cfg, generator, refit=False)
-    src = torch.cat([a, b_gen], dim=1)  # both in A's frame
-    dst = torch.cat([a_gen, b], dim=1)  # both in B's frame
+    src, dst = union_correspondences(a, a_gen, b, b_gen)
     candidates = torch.stack([res_a.transform, invert_transform(res_b.transform)], dim=1)  # (B, 2, 4, 4)
     score = residuals(candidates, src[:, None], dst[:, None]).clamp_max(cfg.inlier_threshold).mean(-1)
     T = candidates[torch.arange(a.shape[0]), score.argmin(dim=1)]

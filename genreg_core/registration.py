@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import os
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 import open3d as o3d
@@ -26,7 +26,7 @@ from genreg_core.config import RefineConfig, RegistrationConfig
 from genreg_core.errors import InvalidPointCloudError, NonFinitePointsError, TooFewPointsError
 from genreg_core.geometry import apply_transform, denormalize_transform, unit_box_normalization
 from genreg_core.model.genreg import GenRegNet
-from genreg_core.pdsac import register_batch
+from genreg_core.pdsac import register_batch, union_inlier_share
 
 
 @dataclass
@@ -42,6 +42,7 @@ class RegistrationResult:
     inlier_ratio: float  # fraction of generated correspondences (both directions) consistent with T
     inlier_rmse: float  # RMS distance of the fitness inliers, input units
     confidence: float  # in [0, 1]: geometric mean of fitness and inlier_ratio
+    start: str = "genreg"  # what the final pose grew from: "genreg", or "initial_guess" (the refine guard won)
     timings: dict[str, float] = field(default_factory=dict)  # seconds per stage and 'total'
 
 
@@ -135,9 +136,23 @@ class Registrar:
         t3 = time.perf_counter()
         if cfg.refine.method != "none":
             T_n = refine_icp(dense_src, dense_tgt, T_n, cfg.refine)
-        t4 = time.perf_counter()
-        fitness, rmse_n = overlap_fitness(dense_src, dense_tgt, T_n, FITNESS_SPACINGS * point_spacing(dense_tgt))
+        fitness_distance = FITNESS_SPACINGS * point_spacing(dense_tgt)
+        fitness, rmse_n = overlap_fitness(dense_src, dense_tgt, T_n, fitness_distance)
         inlier_ratio = float(inliers.float().mean())
+        start = "genreg"
+        if cfg.refine.method != "none" and np.sqrt(fitness * inlier_ratio) < cfg.refine.guard_below:
+            guard = replace(cfg.refine, max_correspondence_distance=cfg.refine.guard_distance,
+                            max_iterations=cfg.refine.guard_iterations)
+            T_prior = refine_icp(dense_src, dense_tgt, np.eye(4), guard)  # from the initial guess
+            fitness_prior, rmse_prior = overlap_fitness(dense_src, dense_tgt, T_prior, fitness_distance)
+            if fitness_prior > fitness:
+                T_n, fitness, rmse_n, start = T_prior, fitness_prior, rmse_prior, "initial_guess"
+                # the generated correspondences of the last pass relate start-moved A to B
+                T_k = torch.from_numpy(T_prior @ np.linalg.inv(last_start[0].double().cpu().numpy()))
+                inlier_ratio = float(union_inlier_share(
+                    T_k.to(a.dtype), apply_transform(last_start.to(a.dtype), a), out.source_generated, b,
+                    out.target_generated, cfg.pdsac.inlier_threshold)[0])
+        t4 = time.perf_counter()
         T = denormalize_transform(T_n, offset, scale) @ init
         aligned = apply_transform(T, src).astype(np.float32)
         a_gen = out.source_generated[0].double().cpu().numpy() * scale + offset
@@ -153,6 +168,7 @@ class Registrar:
             inlier_ratio=inlier_ratio,
             inlier_rmse=rmse_n * scale,
             confidence=float(np.sqrt(fitness * inlier_ratio)),
+            start=start,
             timings={
                 "preprocess": t1 - t0,
                 "network": stages["network"],

@@ -161,6 +161,9 @@ def registration_config(values: dict[str, Any]) -> RegistrationConfig:
             max_iterations=values["refine.max_iterations"],
             max_correspondence_distance=values["refine.max_correspondence_distance"],
             num_points=values["refine.num_points"],
+            guard_below=values["refine.guard_below"],
+            guard_distance=values["refine.guard_distance"],
+            guard_iterations=values["refine.guard_iterations"],
         ),
         passes=values["registration.passes"],
         min_points=values["registration.min_points"],
@@ -377,6 +380,7 @@ class RegisterNode(Node):
             "decode_ms": 1e3 * ((t1 - t0) + t_tgt), "preprocess_ms": 1e3 * ((t3 - t2) + (t2 - t1 - t_tgt)),
             "register_ms": 1e3 * (t4 - t3), "encode_ms": 1e3 * (t5 - t4), "publish_ms": 1e3 * (t6 - t5),
             "points_in": float(src.num_input), "points_registered": float(len(src_points)),
+            "initial_guess_won": float(result.start == "initial_guess"),  # the refine guard replaced GenReg
         })
 
     def _decode_target(

@@ -82,6 +82,11 @@ SPECS: tuple[Spec, ...] = (
          low=1e-6, high=1.0),
     Spec("refine.num_points", _REFINE.num_points, "Points per cloud used by ICP and the fitness measure.", low=16,
          high=1_000_000),
+    Spec("refine.guard_below", _REFINE.guard_below, "Below this confidence ICP also runs from the initial guess; "
+         "the better-overlapping start wins (0: off).", low=0.0, high=1.0),
+    Spec("refine.guard_distance", _REFINE.guard_distance, "ICP correspondence distance from the initial guess, "
+         "unit-box units.", low=1e-6, high=10.0),
+    Spec("refine.guard_iterations", _REFINE.guard_iterations, "ICP iterations from the initial guess.", low=1, high=1000),
     Spec("registration.passes", _REG.passes, "Network + PDSAC passes; each registers the residual of the previous.",
          low=1, high=10),
     Spec("registration.min_points", _REG.min_points, "Clouds with fewer finite points (after preprocessing) fail.", low=4,

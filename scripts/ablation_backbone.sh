@@ -10,6 +10,7 @@ cd "$(dirname "$0")/.."
 STEPS=${1:-600}
 PAIRS=${2:-100}
 . .venv/bin/activate
+mkdir -p runs
 export OMP_WAIT_POLICY=PASSIVE
 for name in pointmixer dgcnn pointnet2; do
   genreg-train --config config/train_modelnet40_ppf.yaml --resume --no-progress \

@@ -1,7 +1,10 @@
 """The registration API: inputs, units, frames, named errors, determinism."""
 
+import dataclasses
+
 import numpy as np
 import pytest
+import torch
 from test_model import SMALL
 
 from genreg_core.checkpoint import save_checkpoint
@@ -130,3 +133,35 @@ def test_generated_target_is_in_the_source_frame_with_several_passes(untrained):
 
     back = apply_transform(np.linalg.inv(res.transformation), tgt)  # B in the source frame per the result
     assert on(res.target_generated, back) < 0.2 * on(res.target_generated, tgt)
+
+
+class _WrongNet(GenRegNet):
+    """Generates a consistent but wrong motion: A_g = R A, B_g = R^T B with R 90 deg about z."""
+
+    R = torch.tensor([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
+
+    def forward(self, a, b):
+        out = super().forward(a, b)
+        return dataclasses.replace(out, source_generated=a @ self.R.T, target_generated=b @ self.R)
+
+
+def test_refine_guard_replaces_a_wrong_global_estimate_by_the_initial_guess():
+    """The network's estimate is wrong (90 deg off), while the true 10 deg motion is within ICP's reach from
+    identity. Guard off: the network's start is kept (and fails); guard on: ICP from the initial guess
+    overlaps better, wins, is reported as such, and its confidence is the returned pose's."""
+    src = _shape(3000)
+    T = random_transform(np.random.default_rng(7), 10.0, 0.0)
+    T[:3, 3] = [0.2, 0.0, -0.1]
+    tgt = apply_transform(T, src)
+    net = _WrongNet(SMALL)
+    results = {}
+    for guard in (0.0, 1.0):
+        cfg = RegistrationConfig(refine=RefineConfig(method="point_to_point", guard_below=guard))
+        results[guard] = Registrar(net, cfg).register(src, tgt)
+    off, on = results[0.0], results[1.0]
+    assert off.start == "genreg" and transform_errors(off.transformation, T)[0] > 45.0  # control
+    assert on.start == "initial_guess" and on.fitness > off.fitness
+    re, te = transform_errors(on.transformation, T)
+    assert re < 0.5 and te < 0.05
+    # the generated correspondences all follow the wrong motion: none fits the returned pose
+    assert off.inlier_ratio > 0.9 and on.inlier_ratio < 0.05 and on.confidence < 0.25

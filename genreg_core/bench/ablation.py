@@ -61,7 +61,7 @@ from genreg_core.config import PDSACConfig, RegistrationConfig
 from genreg_core.errors import CheckpointError
 from genreg_core.geometry import apply_transform, denormalize_transform, unit_box_normalization
 from genreg_core.metrics import chamfer_distance
-from genreg_core.pdsac import pdsac_bidirectional, refit_on_inliers, residuals
+from genreg_core.pdsac import pdsac_bidirectional, refit_on_inliers, union_correspondences, union_inlier_share
 from genreg_core.registration import Registrar, subsample, validate_cloud
 
 reg = o3d.pipelines.registration
@@ -90,9 +90,8 @@ class Correspondences:
 
     def union(self) -> tuple[np.ndarray, np.ndarray]:
         """(src (2N, 3) in A's frame, dst (2N, 3) in B's frame) float64, dst_i ~ T_BA src_i for inliers."""
-        src = torch.cat([self.a, self.b_gen], dim=1)[0]
-        dst = torch.cat([self.a_gen, self.b], dim=1)[0]
-        return src.double().numpy(), dst.double().numpy()
+        src, dst = union_correspondences(self.a, self.a_gen, self.b, self.b_gen)
+        return src[0].double().numpy(), dst[0].double().numpy()
 
 
 @dataclass(frozen=True)
@@ -226,9 +225,8 @@ def run_backbone_dataset(
 
 def union_inlier_ratio(T_n: np.ndarray, c: Correspondences, threshold: float) -> float:
     """Share of the 2N correspondences with |T_n src - dst| < threshold (normalised units)."""
-    src, dst = c.union()
-    return float((residuals(torch.from_numpy(T_n), torch.from_numpy(src), torch.from_numpy(dst)) < threshold)
-                 .double().mean())
+    parts = (x.double() for x in (c.a, c.a_gen, c.b, c.b_gen))
+    return float(union_inlier_share(torch.from_numpy(T_n)[None], *parts, threshold)[0])
 
 
 def run_pose_solver_dataset(
