@@ -251,3 +251,23 @@ def test_pointnet2_backbone_needs_the_invariant_inputs():
         ModelConfig(**{**SMALL.__dict__, "backbone": "pointnet2"})
     with pytest.raises(ConfigError, match="backbone"):
         ModelConfig(**{**SMALL.__dict__, "backbone": "transformer"})
+
+
+def test_point_mlp_equals_its_conv1d_layers():
+    """`PointMLP` computes what its Conv1d / GroupNorm / ReLU layers compute in sequence, gradients too."""
+    from torch import nn
+
+    from genreg_core.model.layers import point_mlp
+
+    torch.manual_seed(0)
+    mlp = point_mlp((4, 32, 64), norm="group").double()
+    for m in mlp.modules():  # non-trivial affine parameters
+        if isinstance(m, nn.GroupNorm):
+            nn.init.normal_(m.weight)
+            nn.init.normal_(m.bias)
+    x = torch.randn(3, 4, 500, dtype=torch.float64)
+    reference = nn.Sequential(*mlp)(x)  # the plain modules, Conv1d path
+    assert torch.allclose(mlp(x), reference, atol=1e-10)
+    x.requires_grad_(True)
+    (grad,) = torch.autograd.grad(mlp(x).square().sum(), x)
+    assert torch.allclose(grad, torch.autograd.grad(nn.Sequential(*mlp)(x).square().sum(), x)[0], atol=1e-9)

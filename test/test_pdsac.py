@@ -6,7 +6,7 @@ import torch
 from genreg_core.config import PDSACConfig
 from genreg_core.geometry import apply_transform, invert_transform, random_transform
 from genreg_core.metrics import transform_errors
-from genreg_core.pdsac import pdsac, pdsac_bidirectional
+from genreg_core.pdsac import hypothesis_residuals, pdsac, pdsac_bidirectional, sample_minimal_sets
 from genreg_core.training.losses import expected_transformation_loss
 
 
@@ -81,3 +81,30 @@ def test_bidirectional_survives_one_bad_direction():
     T_est, *_ = pdsac_bidirectional(a, apply_transform(T, a), b, garbage, PDSACConfig())
     re, te = transform_errors(T_est[0].numpy(), T.numpy())
     assert re < 1e-3 and te < 1e-5
+
+
+def test_minimal_sets_are_distinct_and_uniform():
+    """Every set holds k distinct indices; over many sets each index and each pair of positions is drawn
+    about equally often (chi-square against the uniform law, scipy)."""
+    from scipy.stats import chisquare
+
+    idx = sample_minimal_sets(2, 20, 20000, 4, torch.Generator().manual_seed(0))
+    assert idx.shape == (2, 20000, 4) and (idx.diff(dim=-1) > 0).all() and idx.max() < 20 and idx.min() >= 0
+    counts = np.bincount(idx.flatten().numpy(), minlength=20)
+    assert chisquare(counts).pvalue > 1e-3
+    pairs = np.bincount((idx[..., 0] * 20 + idx[..., 1]).flatten().numpy(), minlength=400).reshape(20, 20)
+    # the smallest two of 4 distinct of 20: P(i, j) = C(19 - j, 2) / C(20, 4) for i < j
+    from math import comb
+
+    expected = np.array([[comb(19 - j, 2) / comb(20, 4) if i < j else 0 for j in range(20)] for i in range(20)])
+    mask = expected > 0
+    observed = pairs[mask]
+    assert chisquare(observed, expected[mask] * observed.sum() / expected[mask].sum()).pvalue > 1e-3
+
+
+def test_stacked_hypothesis_residuals_equal_the_broadcast_form():
+    rng = np.random.default_rng(0)
+    T = torch.tensor(np.stack([[random_transform(rng) for _ in range(7)] for _ in range(2)]))
+    src, dst = torch.rand(2, 50, 3, dtype=torch.float64), torch.rand(2, 50, 3, dtype=torch.float64)
+    expected = torch.linalg.norm(apply_transform(T, src[:, None]) - dst[:, None], dim=-1)
+    assert torch.allclose(hypothesis_residuals(T, src, dst), expected, atol=1e-12)
