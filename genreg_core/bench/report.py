@@ -215,7 +215,8 @@ def markdown(run: BenchRun, thresholds: Sequence[float] = DEFAULT_CONFIDENCE_THR
         (f"- **Threads: {th['requested']}** (torch {th['torch']}, OpenMP/Open3D OMP_NUM_THREADS={th['OMP_NUM_THREADS']}"
         f" with OMP_WAIT_POLICY={th['OMP_WAIT_POLICY']}, small_gicp {th['small_gicp']})."),
         (f"- Checkpoints: objects `{ck['object']}`, scenes `{ck['scene']}`. `genreg` = network + PDSAC; "
-        "`genreg+icp` = the API's point-to-point ICP refinement after it."),
+        "`genreg+icp` = the API's point-to-point ICP refinement after it, with its guard (below confidence "
+        "`refine.guard_below`, ICP from identity competes and the better-overlapping result wins)."),
         ("- RE: angle of R_est R_gt^T (deg). TE: |t_est - t_gt| in the dataset's units. CD: mean of the two "
         f"mean nearest-neighbour distances, on at most {m['options']['cd_points']} random points per cloud; "
         "the `ground truth` row is the CD at the true pose (the floor)."),

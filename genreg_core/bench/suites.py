@@ -227,7 +227,8 @@ def genreg_method(registrar: Registrar) -> Method:
 
 
 def load_genreg(checkpoint: str, seed: int) -> dict[str, Registrar]:
-    """'genreg' (network + PDSAC) and 'genreg+icp' (the API's point-to-point refinement) on one model."""
+    """'genreg' (network + PDSAC) and 'genreg+icp' (the API's point-to-point refinement, default guard) on
+    one model."""
     plain = Registrar.from_checkpoint(checkpoint, RegistrationConfig(seed=seed))
     refine = RegistrationConfig(seed=seed, refine=RefineConfig(method="point_to_point"))
     return {"genreg": plain, "genreg+icp": Registrar(plain.model, refine)}
