@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import os
 import time
+from collections.abc import Sequence
 from dataclasses import dataclass, field, replace
 
 import numpy as np
@@ -105,6 +106,36 @@ class Registrar:
         self, source: np.ndarray, target: np.ndarray, initial_guess: np.ndarray | None = None
     ) -> RegistrationResult:
         """Register `source` onto `target`; `initial_guess` is a 4x4 target_from_source to start from."""
+        return self.register_many([(source, target, initial_guess)])[0]
+
+    def register_many(self, pairs: Sequence[tuple[np.ndarray, ...]]) -> list[RegistrationResult]:
+        """Register (source, target) or (source, target, initial_guess) pairs with one batched network +
+        PDSAC pass (throughput); each pair is prepared, refined and checked on its own, as in `register`
+        (one pair: exactly `register`). Every pair is subsampled with the config's seed; PDSAC draws for
+        the whole batch from one generator. Timings: the batch's network and PDSAC seconds are shared out
+        equally, the other stages are the pair's own. A bad pair raises before anything runs.
+        """
+        cfg = self.config
+        prepared = [self._prepare(*pair) for pair in pairs]
+        if not prepared:
+            return []
+        device = cfg.device
+        a = torch.from_numpy(np.stack([p.a for p in prepared])).to(device)
+        b = torch.from_numpy(np.stack([p.b for p in prepared])).to(device)
+        with torch.no_grad():
+            gen = torch.Generator().manual_seed(cfg.seed) if cfg.seed is not None else None
+            stages: dict[str, float] = {}
+            T_n, out, inliers, last_start = register_batch(self.model, a, b, cfg.pdsac, cfg.passes, gen, stages)
+        shared = {name: seconds / len(prepared) for name, seconds in stages.items()}
+        return [
+            self._finish(p, T_n[k], a[k : k + 1], b[k : k + 1], out.source_generated[k : k + 1],
+                         out.target_generated[k : k + 1], inliers[k], last_start[k], shared)
+            for k, p in enumerate(prepared)
+        ]
+
+    def _prepare(
+        self, source: np.ndarray, target: np.ndarray, initial_guess: np.ndarray | None = None
+    ) -> _PreparedPair:
         cfg = self.config
         t0 = time.perf_counter()
         src, src_mask = validate_cloud(source, "source", cfg.min_points)
@@ -118,66 +149,85 @@ class Registrar:
             chosen = points if keep_all and len(points) <= n else subsample(points, n, rng)
             return ((chosen - offset) / scale).astype(np.float32)
 
-        a_np = normalized_subset(src_init, self.num_points)
-        b_np = normalized_subset(tgt, self.num_points)
+        a = normalized_subset(src_init, self.num_points)
+        b = normalized_subset(tgt, self.num_points)
         dense_src = normalized_subset(src_init, cfg.refine.num_points, keep_all=True)
         dense_tgt = normalized_subset(tgt, cfg.refine.num_points, keep_all=True)
-        t1 = time.perf_counter()
-        device = cfg.device
-        a = torch.from_numpy(a_np)[None].to(device)
-        b = torch.from_numpy(b_np)[None].to(device)
-        with torch.no_grad():
-            gen = torch.Generator().manual_seed(cfg.seed) if cfg.seed is not None else None
-            stages: dict[str, float] = {}
-            T_n, out, inliers, last_start = register_batch(self.model, a, b, cfg.pdsac, cfg.passes, gen, stages)
-        T_n = T_n[0].double().cpu().numpy()
-        # The last pass saw the source moved by `last_start` (and the initial guess): B_g is in that frame.
-        back = np.linalg.inv(denormalize_transform(last_start[0].double().cpu().numpy(), offset, scale) @ init)
+        return _PreparedPair(src, src_mask, init, offset, scale, a, b, dense_src, dense_tgt,
+                             time.perf_counter() - t0)
+
+    def _finish(
+        self, p: _PreparedPair, T_n_t: torch.Tensor, a: torch.Tensor, b: torch.Tensor, a_gen: torch.Tensor,
+        b_gen: torch.Tensor, inliers: torch.Tensor, last_start_t: torch.Tensor, shared: dict[str, float],
+    ) -> RegistrationResult:
+        """Refinement, guard, fitness and mapping back of one pair (tensors of batch 1 / unbatched)."""
+        cfg = self.config
         t3 = time.perf_counter()
+        T_n = T_n_t.double().cpu().numpy()
+        last_start = last_start_t.double().cpu().numpy()
+        # The last pass saw the source moved by `last_start` (and the initial guess): B_g is in that frame.
+        back = np.linalg.inv(denormalize_transform(last_start, p.offset, p.scale) @ p.init)
         if cfg.refine.method != "none":
-            T_n = refine_icp(dense_src, dense_tgt, T_n, cfg.refine)
-        fitness_distance = FITNESS_SPACINGS * point_spacing(dense_tgt)
-        fitness, rmse_n = overlap_fitness(dense_src, dense_tgt, T_n, fitness_distance)
+            T_n = refine_icp(p.dense_src, p.dense_tgt, T_n, cfg.refine)
+        fitness_distance = FITNESS_SPACINGS * point_spacing(p.dense_tgt)
+        fitness, rmse_n = overlap_fitness(p.dense_src, p.dense_tgt, T_n, fitness_distance)
         inlier_ratio = float(inliers.float().mean())
         start = "genreg"
         if cfg.refine.method != "none" and np.sqrt(fitness * inlier_ratio) < cfg.refine.guard_below:
             guard = replace(cfg.refine, max_correspondence_distance=cfg.refine.guard_distance,
                             max_iterations=cfg.refine.guard_iterations)
-            T_prior = refine_icp(dense_src, dense_tgt, np.eye(4), guard)  # from the initial guess
-            fitness_prior, rmse_prior = overlap_fitness(dense_src, dense_tgt, T_prior, fitness_distance)
+            T_prior = refine_icp(p.dense_src, p.dense_tgt, np.eye(4), guard)  # from the initial guess
+            fitness_prior, rmse_prior = overlap_fitness(p.dense_src, p.dense_tgt, T_prior, fitness_distance)
             if fitness_prior > fitness:
                 T_n, fitness, rmse_n, start = T_prior, fitness_prior, rmse_prior, "initial_guess"
                 # the generated correspondences of the last pass relate start-moved A to B
-                T_k = torch.from_numpy(T_prior @ np.linalg.inv(last_start[0].double().cpu().numpy()))
+                T_k = torch.from_numpy(T_prior @ np.linalg.inv(last_start))[None].to(a.dtype)
+                moved = apply_transform(last_start_t[None].to(a.dtype), a)
                 inlier_ratio = float(union_inlier_share(
-                    T_k.to(a.dtype), apply_transform(last_start.to(a.dtype), a), out.source_generated, b,
-                    out.target_generated, cfg.pdsac.inlier_threshold)[0])
+                    T_k, moved, a_gen, b, b_gen, cfg.pdsac.inlier_threshold)[0])
         t4 = time.perf_counter()
-        T = denormalize_transform(T_n, offset, scale) @ init
-        aligned = apply_transform(T, src).astype(np.float32)
-        a_gen = out.source_generated[0].double().cpu().numpy() * scale + offset
-        b_gen = out.target_generated[0].double().cpu().numpy() * scale + offset
+        T = denormalize_transform(T_n, p.offset, p.scale) @ p.init
+        aligned = apply_transform(T, p.src).astype(np.float32)
+        a_gen_np = a_gen[0].double().cpu().numpy() * p.scale + p.offset
+        b_gen_np = b_gen[0].double().cpu().numpy() * p.scale + p.offset
         t5 = time.perf_counter()
         return RegistrationResult(
             transformation=T,
-            source_generated=a_gen.astype(np.float32),
-            target_generated=apply_transform(back, b_gen).astype(np.float32),
+            source_generated=a_gen_np.astype(np.float32),
+            target_generated=apply_transform(back, b_gen_np).astype(np.float32),
             aligned_source=aligned,
-            source_valid_mask=src_mask,
+            source_valid_mask=p.src_mask,
             fitness=fitness,
             inlier_ratio=inlier_ratio,
-            inlier_rmse=rmse_n * scale,
+            inlier_rmse=rmse_n * p.scale,
             confidence=float(np.sqrt(fitness * inlier_ratio)),
             start=start,
             timings={
-                "preprocess": t1 - t0,
-                "network": stages["network"],
-                "pdsac": stages["pdsac"],
+                "preprocess": p.seconds,
+                "network": shared["network"],
+                "pdsac": shared["pdsac"],
                 "refine": t4 - t3,
                 "postprocess": t5 - t4,
-                "total": t5 - t0,
+                "total": p.seconds + shared["network"] + shared["pdsac"] + t5 - t3,
             },
         )
+
+
+@dataclass(frozen=True)
+class _PreparedPair:
+    """One pair ready for the network: finite source, its mask, the initial guess, the similarity
+    (normalised = (x - offset) / scale), the model-N clouds a, b and the refinement clouds, normalised."""
+
+    src: np.ndarray
+    src_mask: np.ndarray
+    init: np.ndarray
+    offset: np.ndarray
+    scale: float
+    a: np.ndarray
+    b: np.ndarray
+    dense_src: np.ndarray
+    dense_tgt: np.ndarray
+    seconds: float
 
 
 def _check_transform(T: np.ndarray) -> np.ndarray:

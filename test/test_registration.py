@@ -165,3 +165,29 @@ def test_refine_guard_replaces_a_wrong_global_estimate_by_the_initial_guess():
     assert re < 0.5 and te < 0.05
     # the generated correspondences all follow the wrong motion: none fits the returned pose
     assert off.inlier_ratio > 0.9 and on.inlier_ratio < 0.05 and on.confidence < 0.25
+
+
+def test_register_many_batches_pairs_and_one_pair_is_register(untrained):
+    """Three pairs with different known motions in one batch: each result maps its own source onto its
+    own target (ICP from the untrained network's start, as in `register`); a batch of one is `register`."""
+    cfg = RegistrationConfig(refine=RefineConfig(method="point_to_point", max_iterations=50))
+    reg = Registrar.from_checkpoint(untrained, cfg)
+    rng = np.random.default_rng(3)
+    pairs, truths = [], []
+    for k in range(3):
+        src = _shape(1500, seed=10 + k) * (1.0 + k)
+        T = random_transform(rng, 4.0, 0.0)
+        T[:3, 3] = rng.normal(scale=0.05, size=3)
+        pairs.append((src, apply_transform(T, src)))
+        truths.append(T)
+    results = reg.register_many(pairs)
+    assert len(results) == 3
+    for res, T in zip(results, truths, strict=True):
+        re, te = transform_errors(res.transformation, T)
+        assert re < 0.5 and te < 0.05
+    single = reg.register(*pairs[1])
+    (batch_of_one,) = reg.register_many([pairs[1]])
+    np.testing.assert_array_equal(single.transformation, batch_of_one.transformation)
+    with pytest.raises(InvalidPointCloudError):
+        reg.register_many([pairs[0], (pairs[1][0][:, :2], pairs[1][1])])
+    assert reg.register_many([]) == []
