@@ -73,8 +73,9 @@ def hypothesis_residuals(T: torch.Tensor, src: torch.Tensor, dst: torch.Tensor) 
     homogeneous = torch.cat([src, torch.ones_like(src[..., :1])], dim=-1).transpose(1, 2)  # (B, 4, N)
     moved = (T[..., :3, :].reshape(B, 3 * m, 4) @ homogeneous).reshape(B, m, 3, -1)
     d = moved - dst.transpose(1, 2)[:, None]
-    # three contiguous (B, m, N) planes: a norm over the middle axis is ~30x slower on CPU
-    return (d[:, :, 0].square() + d[:, :, 1].square() + d[:, :, 2].square()).sqrt()
+    # three contiguous (B, m, N) planes: a norm over the middle axis is ~30x slower on CPU. The clamp
+    # keeps the gradient finite (zero) at a zero residual, as torch.linalg.norm's is.
+    return (d[:, :, 0].square() + d[:, :, 1].square() + d[:, :, 2].square()).clamp_min(1e-30).sqrt()
 
 
 def pdsac(

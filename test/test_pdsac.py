@@ -108,3 +108,8 @@ def test_stacked_hypothesis_residuals_equal_the_broadcast_form():
     src, dst = torch.rand(2, 50, 3, dtype=torch.float64), torch.rand(2, 50, 3, dtype=torch.float64)
     expected = torch.linalg.norm(apply_transform(T, src[:, None]) - dst[:, None], dim=-1)
     assert torch.allclose(hypothesis_residuals(T, src, dst), expected, atol=1e-12)
+    # a zero residual (dst = T src exactly) gives a finite gradient, as torch.linalg.norm's is
+    src.requires_grad_(True)
+    exact = apply_transform(T[:, :1], src[:, None])[:, 0].detach()
+    hypothesis_residuals(T[:, :1], src, exact).sum().backward()
+    assert torch.isfinite(src.grad).all()
