@@ -18,5 +18,5 @@ for name in pointmixer dgcnn pointnet2; do
     > "runs/abl_$name.log" 2>&1 &
 done
 wait
-genreg-bench --ablation backbone --datasets modelnet-unseen-clean modelnet-unseen-partial --object-points 512 \
+genreg-bench --suite full --ablation backbone --datasets modelnet-unseen-clean modelnet-unseen-partial --object-points 512 \
   --max-pairs "$PAIRS" --seed 0 --threads 2 --out build/ablation_backbone
