@@ -88,6 +88,7 @@ class Stats:
         self.dropped: Counter[str] = Counter()
         self.failed: Counter[str] = Counter()
         self.registered = 0
+        self.low_confidence = 0  # registered and published, but below warn_confidence
         self.paired = 0  # pairs formed by the sync; each is registered, failed, dropped or superseded
         self.last_arrival: dict[str, float | None] = {SOURCE: None, TARGET: None}
         self.latency = deque(maxlen=100)  # s, arrival of the pair's later cloud -> published
@@ -111,14 +112,15 @@ class Stats:
             self.failed[reason] += 1
             self.last_outcome = f"failed: {reason}"
 
-    def ok(self, latency: float, overhead: float, figures: dict[str, float]) -> None:
+    def ok(self, latency: float, overhead: float, figures: dict[str, float], low_confidence: bool = False) -> None:
         with self.lock:
             self.registered += 1
+            self.low_confidence += int(low_confidence)
             self.latency.append(latency)
             self.overhead.append(overhead)
             self.last = dict(figures)
             self.history.append(self.last)
-            self.last_outcome = "registered"
+            self.last_outcome = "registered with low confidence" if low_confidence else "registered"
 
 
 def matrix_to_msg(T: np.ndarray, header: Header, child_frame: str) -> TransformStamped:
@@ -372,6 +374,10 @@ class RegisterNode(Node):
         if values["publish_generated"]:
             self._pub_generated.publish(xyz_to_msg(header, result.source_generated))
         t6 = time.perf_counter()
+        low_confidence = result.confidence < values["warn_confidence"]
+        if low_confidence:  # published, yet flagged: a user must not mistake it for a good result
+            self._warn("low_confidence", f"published a low-confidence result: confidence {result.confidence:.2f} < "
+                       f"warn_confidence {values['warn_confidence']} (fitness {result.fitness:.2f})")
         self._last_T = T  # the start of the next pair when use_last_result_as_guess is set
         latency = time.monotonic() - max(src_cloud.received, tgt_cloud.received)
         overhead = (t1 - t0) + t_tgt + (t6 - t4)
@@ -381,7 +387,7 @@ class RegisterNode(Node):
             "register_ms": 1e3 * (t4 - t3), "encode_ms": 1e3 * (t5 - t4), "publish_ms": 1e3 * (t6 - t5),
             "points_in": float(src.num_input), "points_registered": float(len(src_points)),
             "initial_guess_won": float(result.start == "initial_guess"),  # the refine guard replaced GenReg
-        })
+        }, low_confidence)
 
     def _decode_target(
         self, msg: PointCloud2, max_points: int, pre: PreprocessConfig
@@ -425,6 +431,7 @@ class RegisterNode(Node):
         with s.lock:
             dropped, failed, received = Counter(s.dropped), Counter(s.failed), Counter(s.received)
             registered, paired, last, outcome = s.registered, s.paired, dict(s.last), s.last_outcome
+            low_confidence = s.low_confidence
             arrivals = dict(s.last_arrival)
             latency = list(s.latency)
             overhead = list(s.overhead)
@@ -444,9 +451,14 @@ class RegisterNode(Node):
         if outcome.startswith("failed"):
             level = DiagnosticStatus.WARN
             notes.append(f"last registration {outcome}")
+        elif outcome == "registered with low confidence":
+            level = DiagnosticStatus.WARN
+            notes.append(f"last registration has low confidence ({last.get('confidence', float('nan')):.2f} < "
+                         f"warn_confidence {v['warn_confidence']})")
         summary = f"registered {registered}, dropped {sum(dropped.values())}, failed {sum(failed.values())}"
         kv = {
             "registered": registered,
+            "low_confidence": low_confidence,
             "dropped": sum(dropped.values()),
             "failed": sum(failed.values()),
             "received.source": received[SOURCE],

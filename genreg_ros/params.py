@@ -121,6 +121,8 @@ SPECS: tuple[Spec, ...] = (
     Spec("use_last_result_as_guess", False, "Start each registration from the previous result (tracking)."),
     Spec("min_fitness", 0.0, "Results with lower fitness are counted as failed and not published.",
          low=0.0, high=1.0),
+    Spec("warn_confidence", 0.3, "Results with lower confidence are published, with a throttled warning, a "
+         "low_confidence count and a WARN diagnostics status.", low=0.0, high=1.0),
     Spec("publish_generated", False, "Also publish the generated source cloud (debugging)."),
     Spec("publish_tf", False, "Broadcast the transform on /tf (needs tf2_ros).", read_only=True),
     Spec("diagnostics.period", 1.0, "Diagnostics publishing period, s.", low=0.05, high=60.0, read_only=True),

@@ -413,7 +413,8 @@ def test_latest_target_mode_registers_each_source_against_the_reference(ns, untr
 
 
 def test_diagnostics_warn_when_clouds_stop(ns, untrained_checkpoint):
-    with running_node(ns, untrained_checkpoint, **{"diagnostics.stale_timeout": 0.5}) as h:
+    params = {"diagnostics.stale_timeout": 0.5, "warn_confidence": 0.0}  # the untrained model's confidence is low
+    with running_node(ns, untrained_checkpoint, **params) as h:
         time.sleep(0.7)
         s = h.status(after=time.monotonic())
         assert s.level == DiagnosticStatus.WARN and "no source cloud" in s.message
@@ -425,6 +426,21 @@ def test_diagnostics_warn_when_clouds_stop(ns, untrained_checkpoint):
         time.sleep(0.8)
         s = h.status(after=time.monotonic())
         assert s.level == DiagnosticStatus.WARN and "no new source cloud" in s.message
+
+
+def test_low_confidence_results_are_published_but_warned_and_counted(ns, untrained_checkpoint, capfd):
+    """warn_confidence 1.0: every result is below it. The outputs still go out (stamped like the source),
+    and the node logs a warning, counts the result and sets diagnostics to WARN with the reason."""
+    with running_node(ns, untrained_checkpoint, warn_confidence=1.0) as h:
+        src, tgt, rec = make_pair(SMALL_T, 900.0)
+        h.send(src, tgt)
+        check_outputs(*h.wait_output(src.header), rec, src.header, SMALL_T)
+        s = h.status(after=time.monotonic())
+        v = diag_values(s)
+        assert v["registered"] == "1" and v["low_confidence"] == "1"
+        assert s.level == DiagnosticStatus.WARN and "low confidence" in s.message
+        assert float(v["last.confidence"]) < 1.0
+    assert "low-confidence result" in capfd.readouterr().err
 
 
 def test_use_sim_time(ns, untrained_checkpoint):
