@@ -174,9 +174,7 @@ class Registrar:
         inlier_ratio = float(inliers.float().mean())
         start = "genreg"
         if cfg.refine.method != "none" and np.sqrt(fitness * inlier_ratio) < cfg.refine.guard_below:
-            guard = replace(cfg.refine, max_correspondence_distance=cfg.refine.guard_distance,
-                            max_iterations=cfg.refine.guard_iterations)
-            T_prior = refine_icp(p.dense_src, p.dense_tgt, np.eye(4), guard)  # from the initial guess
+            T_prior = guard_icp(p.dense_src, p.dense_tgt, cfg.refine)
             fitness_prior, rmse_prior = overlap_fitness(p.dense_src, p.dense_tgt, T_prior, fitness_distance)
             if fitness_prior > fitness:
                 T_n, fitness, rmse_n, start = T_prior, fitness_prior, rmse_prior, "initial_guess"
@@ -257,6 +255,13 @@ def overlap_fitness(src: np.ndarray, tgt: np.ndarray, T: np.ndarray, threshold: 
     """Open3D's fitness (share of moved source points with a target point within `threshold`) and RMSE."""
     ev = o3d.pipelines.registration.evaluate_registration(_o3d_cloud(src), _o3d_cloud(tgt), threshold, T)
     return float(ev.fitness), float(ev.inlier_rmse)
+
+
+def guard_icp(src: np.ndarray, tgt: np.ndarray, cfg: RefineConfig) -> np.ndarray:
+    """The refinement guard's candidate: ICP from the initial guess (identity in the normalised frame of
+    the guess-moved source) with the guard's cut-off and iterations, unit-box units."""
+    guard = replace(cfg, max_correspondence_distance=cfg.guard_distance, max_iterations=cfg.guard_iterations)
+    return refine_icp(src, tgt, np.eye(4), guard)
 
 
 def refine_icp(src: np.ndarray, tgt: np.ndarray, T_init: np.ndarray, cfg: RefineConfig) -> np.ndarray:

@@ -16,7 +16,6 @@ from __future__ import annotations
 
 import argparse
 import sys
-from dataclasses import replace
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
@@ -44,14 +43,13 @@ def main() -> int:
     from genreg_core.registration import (
         FITNESS_SPACINGS,
         Registrar,
+        guard_icp,
         overlap_fitness,
         point_spacing,
-        refine_icp,
     )
 
     refine = RefineConfig(method="point_to_point", guard_below=0.0)
     registrar = Registrar.from_checkpoint(args.checkpoint, RegistrationConfig(seed=0, refine=refine))
-    guard = replace(refine, max_correspondence_distance=refine.guard_distance, max_iterations=refine.guard_iterations)
     pairs = ModelNetPairs(load_modelnet40("train", "seen"), registrar.num_points, "partial", seed=1)
     rows = []
     for i in tqdm(np.random.default_rng(1).choice(len(pairs), args.pairs, replace=False), unit="pair"):
@@ -61,7 +59,7 @@ def main() -> int:
         plain = registrar.register(src, tgt)
         offset, scale = unit_box_normalization(src)  # the API's frame (no initial guess)
         src_n, tgt_n = (src - offset) / scale, (tgt - offset) / scale
-        T_prior = refine_icp(src_n, tgt_n, np.eye(4), guard)
+        T_prior = guard_icp(src_n, tgt_n, refine)
         fitness_prior, _ = overlap_fitness(src_n, tgt_n, T_prior, FITNESS_SPACINGS * point_spacing(tgt_n))
         rows.append((transform_errors(plain.transformation, T_gt)[0], plain.confidence, plain.fitness,
                      transform_errors(denormalize_transform(T_prior, offset, scale), T_gt)[0], fitness_prior))

@@ -60,17 +60,20 @@ def point_pair_features(
 
 
 @torch.no_grad()
-def invariant_geometry(points: torch.Tensor, neighbours: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+def invariant_geometry(
+    points: torch.Tensor, neighbours: torch.Tensor
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """Rigid-motion invariants of centred (B, N, 3) clouds on a kNN graph (B, N, k).
 
-    Returns edge features (B, N, k, 4) and point features (B, N, 4), as described in the module doc.
+    Returns edge features (B, N, k, 4) and point features (B, N, 4), as described in the module doc, and
+    the unoriented normals (B, N, 3) they were computed with.
     """
     normals, evals = local_shape(points, neighbours)
     edge = point_pair_features(
         points, normals, gather_neighbours(points, neighbours), gather_neighbours(normals, neighbours)
     )
     point = torch.cat([evals.clamp_min(0).sqrt(), torch.linalg.norm(points, dim=-1, keepdim=True)], dim=-1)
-    return edge, point
+    return edge, point, normals
 
 
 class PPFStem(nn.Module):
@@ -90,12 +93,9 @@ class PPFStem(nn.Module):
 
     def stem(self, points: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         neighbours = knn_indices(points, self.k)
-        normals, evals = local_shape(points, neighbours)
-        edge = self.scaled(point_pair_features(
-            points, normals, gather_neighbours(points, neighbours), gather_neighbours(normals, neighbours)
-        ))
-        point = torch.cat([evals.clamp_min(0).sqrt() * self.scale,
-                           torch.linalg.norm(points, dim=-1, keepdim=True) * self.scale / 5.0], dim=-1)
+        edge, point, normals = invariant_geometry(points, neighbours)
+        edge = self.scaled(edge)
+        point = torch.cat([point[..., :3] * self.scale, point[..., 3:] * self.scale / 5.0], dim=-1)
         B, N, k, _ = edge.shape
         h = self.edge_mlp(edge.reshape(B, N * k, 4).transpose(1, 2))  # (B, 64, N k)
         h = h.reshape(B, -1, N, k).amax(dim=-1)  # (B, 64, N)
