@@ -13,10 +13,11 @@ from pathlib import Path
 from typing import Any
 
 import torch
+from torch import nn
 
 from genreg_core.config import WEIGHTS_DIR, ModelConfig, from_dict
 from genreg_core.errors import CheckpointError, ConfigError
-from genreg_core.model.genreg import GenRegNet
+from genreg_core.model import build_model
 
 FORMAT = "genreg-checkpoint-v1"
 
@@ -34,7 +35,7 @@ def resolve_checkpoint(name_or_path: str | os.PathLike) -> Path:
 
 
 def save_checkpoint(
-    model: GenRegNet, path: str | os.PathLike, meta: dict[str, Any] | None = None, half: bool = True
+    model: nn.Module, path: str | os.PathLike, meta: dict[str, Any] | None = None, half: bool = True
 ) -> Path:
     """Write the generator's weights (fp16 when `half`) and its ModelConfig."""
     path = Path(path)
@@ -48,7 +49,7 @@ def save_checkpoint(
 
 def load_checkpoint(
     name_or_path: str | os.PathLike, num_points: int | None = None, device: str = "cpu"
-) -> tuple[GenRegNet, dict[str, Any]]:
+) -> tuple[nn.Module, dict[str, Any]]:
     """Load a generator in eval mode (float32). `num_points`, if given, must match the model's N."""
     path = resolve_checkpoint(name_or_path)
     try:
@@ -65,7 +66,7 @@ def load_checkpoint(
         raise CheckpointError(
             f"checkpoint {path} was built for N={cfg.num_points} points, but N={num_points} was requested"
         )
-    model = GenRegNet(cfg)
+    model = build_model(cfg)
     try:
         model.load_state_dict({k: v.float() if v.is_floating_point() else v for k, v in blob["state_dict"].items()})
     except (RuntimeError, KeyError, AttributeError) as exc:

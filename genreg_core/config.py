@@ -1,7 +1,13 @@
-"""Typed configuration of genreg_core. Every default lives here, once.
+"""Typed configuration of genreg_core: the one home of every setting.
 
-Dataclasses load from plain dicts (YAML) with `from_dict`, which rejects unknown keys and wrong
-types with a `ConfigError` naming the field.
+Each field is declared with `setting(default, help, low=..., high=..., choices=...)`: its name, default,
+range and one-line help live here once. `settings(cls)` lists them (dotted names, nested dataclasses
+flattened); the ROS node's parameters, their validation and `config/genreg.yaml` are derived from that
+list. Dataclasses load from plain dicts (YAML) with `from_dict`, which rejects unknown keys and wrong
+types with a `ConfigError` naming the field; `check_ranges` enforces the declared limits.
+
+Units: distances in the registration settings are in the core's unit-box units (fractions of the
+source cloud's bounding-box size, see `genreg_core.geometry`), unless a name says otherwise.
 """
 
 from __future__ import annotations
@@ -27,112 +33,158 @@ def data_root(configured: str | os.PathLike | None = None) -> Path:
     return Path(env or configured or DEFAULT_DATA_ROOT).expanduser()
 
 
+def setting(
+    default: Any,
+    help: str,
+    *,
+    low: float | None = None,
+    high: float | None = None,
+    choices: tuple[str, ...] | None = None,
+    start_up: bool = False,
+) -> Any:
+    """A dataclass field carrying its help and limits (inclusive). `start_up`: read once (a node restart
+    changes it). Mutable defaults (lists, dataclass instances) are copied per instance."""
+    meta = {"help": help, "low": low, "high": high, "choices": choices, "start_up": start_up}
+    if isinstance(default, (list, dict)) or dataclasses.is_dataclass(default):
+        return field(default_factory=lambda: dataclasses.replace(default) if dataclasses.is_dataclass(default)
+                     else type(default)(default), metadata=meta)
+    return field(default=default, metadata=meta)
+
+
+@dataclass(frozen=True)
+class Setting:
+    """One setting as `settings()` lists it: dotted name, default, type hint, help and limits."""
+
+    name: str
+    default: Any
+    type: Any
+    help: str
+    low: float | None = None
+    high: float | None = None
+    choices: tuple[str, ...] | None = None
+    start_up: bool = False
+
+
+def settings(cls_or_obj: Any, prefix: str = "") -> tuple[Setting, ...]:
+    """Every leaf setting of a config dataclass (or instance: its values become the defaults), nested
+    dataclasses flattened with dotted names ("refine.max_iterations")."""
+    cls = cls_or_obj if isinstance(cls_or_obj, type) else type(cls_or_obj)
+    hints = typing.get_type_hints(cls)
+    out: list[Setting] = []
+    for f in dataclasses.fields(cls):
+        if isinstance(cls_or_obj, type):
+            value = f.default if f.default is not dataclasses.MISSING else f.default_factory()  # type: ignore[misc]
+        else:
+            value = getattr(cls_or_obj, f.name)
+        if dataclasses.is_dataclass(hints[f.name]):
+            out += settings(value, f"{prefix}{f.name}.")
+            continue
+        m = f.metadata
+        out.append(Setting(f"{prefix}{f.name}", value, hints[f.name], m.get("help", ""), m.get("low"),
+                           m.get("high"), m.get("choices"), m.get("start_up", False)))
+    return tuple(out)
+
+
+def check_ranges(obj: Any, prefix: str = "") -> None:
+    """Raise ConfigError if a field of dataclass `obj` is outside its declared limits or choices."""
+    for f in dataclasses.fields(obj):
+        value, m, name = getattr(obj, f.name), f.metadata, f"{prefix}{f.name}"
+        if isinstance(value, bool) or value is None:
+            continue
+        if m.get("choices") is not None and value not in m["choices"]:
+            raise ConfigError(f"{name} must be one of {list(m['choices'])}, got {value!r}")
+        if isinstance(value, (int, float)):
+            low, high = m.get("low"), m.get("high")
+            if (low is not None and value < low) or (high is not None and value > high):
+                raise ConfigError(f"{name} must be in [{low}, {high}], got {value!r}")
+
+
 @dataclass(frozen=True)
 class ModelConfig:
-    """Network architecture (paper Sec. 3 and appendix). Stored inside every checkpoint."""
+    """Network architecture. Stored inside every checkpoint; `model.build_model` builds it.
 
-    num_points: int = 512  # N: token mixing fixes it; the API resamples inputs to N
-    k_neighbors: int = 20  # GCNN kNN graph size
-    tnet_channels: tuple[int, ...] = (64, 128, 1024)  # T-Net shared point MLP
-    tnet_head: tuple[int, ...] = (512, 256)  # T-Net MLP on both global features, then 6
-    gcnn_channels: int = 64  # edge-convolution output channels
-    mixer_hidden: tuple[int, ...] = (1024, 128)  # hidden width of mixer layer 1 and 2 (token and channel MLPs)
-    feature_dim: int = 128  # per-point feature after the mixers
-    decoder_channels: tuple[int, ...] = (256, 128, 64)  # three hidden 1D convs, a fourth outputs xyz
-    discriminator_hidden: tuple[int, ...] = (64, 128)  # per-point FCs, max-pool, then FC -> 1
-    center_inputs: bool = True  # subtract each cloud's centroid before the network
-    prealign: str = "none"  # "none" or "pca": classical PCA pre-rotation, the net learns the residual
-    norm: str = "group"  # normalisation in the point MLPs: "none" or "group"
-    interaction: str = "global"  # "global": the paper's FI; "local": + nearest neighbour; "attention": soft pointer
-    attention_dim: int = 64  # query/key width of the "attention" interaction
-    attention_sigma: float = 0.05  # initial width of its distance kernel, unit-box units (learned); 0: no kernel
-    encoder: str = "xyz"  # "xyz": the paper's GCNN on coordinates; "ppf": rotation-invariant point-pair features
-    offset_limit: float = 0.0  # decoder offsets squashed to |d| < this (L tanh(d / L)); 0: unbounded
-    backbone: str = "pointmixer"  # "pointmixer": GCNN + the paper's two mixer layers; ablations: "dgcnn"
-    # (GCNN features alone, then a linear layer), "pointnet2" (PointNet++-style set abstraction and feature
-    # propagation on the same invariant inputs; needs encoder "ppf")
-    decoder_offsets: bool = True  # False ("attention" only): A_g is the pointer's pick, the decoder idles
-    tnet: bool = True  # the paper's T-Net; off: identity (an invariant encoder does not need it)
+    "genreg" (every shipped model): rotation-invariant point-pair-feature encoder, the paper's two mixer
+    layers (or, backbone "dgcnn", a linear layer on the GCNN features) and the soft pointer that picks each
+    point's match in the other cloud (`genreg_core.model.genreg`). "paper": the paper's own generator
+    (T-Net, xyz GCNN, mixers, global feature interaction, decoder; `genreg_core.model.paper`), kept as a
+    tested variant for ablations; its layer widths are the paper's, fixed in that module.
+    """
+
+    architecture: str = setting("genreg", "genreg (shipped) or paper (the paper's generator, ablations).",
+                                choices=("genreg", "paper"))
+    num_points: int = setting(512, "N: token mixing fixes it; the API resamples inputs to N.", low=32)
+    k_neighbors: int = setting(20, "kNN graph size of the GCNN.", low=1)
+    gcnn_channels: int = setting(64, "Edge-convolution output channels.", low=1)
+    mixer_hidden: tuple[int, ...] = setting((1024, 128), "Hidden widths of mixer layer 1 and 2.")
+    feature_dim: int = setting(128, "Per-point feature width after the mixers.", low=1)
+    backbone: str = setting("pointmixer", "pointmixer: GCNN + the paper's two mixer layers; dgcnn: GCNN "
+                            "features alone, then a linear layer.", choices=("pointmixer", "dgcnn"))
+    attention_dim: int = setting(64, "Query/key width of the soft pointer (genreg).", low=1)
+    norm: str = setting("group", "Normalisation in the point MLPs.", choices=("none", "group"))
+    discriminator_hidden: tuple[int, ...] = setting((64, 128), "Discriminator per-point widths (training only).")
 
     def __post_init__(self) -> None:
-        _check(self.num_points >= 32, "model.num_points must be >= 32")
-        _check(1 <= self.k_neighbors < self.num_points, "model.k_neighbors must be in [1, num_points)")
+        check_ranges(self, "model.")
+        _check(self.k_neighbors < self.num_points, "model.k_neighbors must be < model.num_points")
         _check(len(self.mixer_hidden) == 2, "model.mixer_hidden needs two widths (one per mixer layer)")
-        _check(len(self.decoder_channels) == 3, "model.decoder_channels needs three widths")
-        _check(self.prealign in ("none", "pca"), "model.prealign must be 'none' or 'pca'")
-        _check(self.norm in ("none", "group"), "model.norm must be 'none' or 'group'")
-        _check(self.encoder in ("xyz", "ppf"), "model.encoder must be 'xyz' or 'ppf'")
-        _check(self.backbone in ("pointmixer", "dgcnn", "pointnet2"),
-               "model.backbone must be 'pointmixer', 'dgcnn' or 'pointnet2'")
-        _check(self.backbone != "pointnet2" or self.encoder == "ppf", "model.backbone 'pointnet2' needs encoder 'ppf'")
-        _check(self.decoder_offsets or self.interaction == "attention",
-               "model.decoder_offsets: false needs interaction 'attention' (the pointer generates the points)")
-        _check(self.offset_limit >= 0, "model.offset_limit must be >= 0")
-        _check(self.attention_sigma >= 0, "model.attention_sigma must be >= 0")
-        _check(self.interaction in ("global", "local", "attention"),
-               "model.interaction must be 'global', 'local' or 'attention'")
 
 
 @dataclass(frozen=True)
 class PDSACConfig:
     """Parallel differentiable sample consensus (paper Sec. 3.3)."""
 
-    num_hypotheses: int = 512  # m minimal sets drawn at once (50 % outliers: P(no clean set) ~ 1e-14)
-    sample_size: int = 4  # k correspondences per minimal set
-    inlier_threshold: float = 0.05  # residual cut-off in unit-box units (score truncation, inliers)
-    temperature: float = 0.01  # softmax temperature of the soft (training) selection
-    refit: bool = True  # least-squares refit on the winner's inliers (inference)
+    num_hypotheses: int = setting(512, "PDSAC hypotheses m drawn at once.", low=1, high=100000)
+    sample_size: int = setting(4, "PDSAC correspondences k per minimal set.", low=3, high=64)
+    inlier_threshold: float = setting(0.05, "PDSAC inlier residual, unit-box units.", low=1e-6, high=1.0)
+    temperature: float = setting(0.01, "Softmax temperature of the soft (training) selection.", low=1e-9)
+    refit: bool = setting(True, "Least-squares refit on the winner's inliers (inference).")
 
     def __post_init__(self) -> None:
-        _check(self.num_hypotheses >= 1, "pdsac.num_hypotheses must be >= 1")
-        _check(self.sample_size >= 3, "pdsac.sample_size must be >= 3")
-        _check(self.inlier_threshold > 0, "pdsac.inlier_threshold must be > 0")
-        _check(self.temperature > 0, "pdsac.temperature must be > 0")
+        check_ranges(self, "pdsac.")
 
 
 @dataclass(frozen=True)
 class RefineConfig:
-    """Optional ICP refinement after GenReg + PDSAC (Open3D)."""
+    """Optional ICP refinement after GenReg + PDSAC (Open3D), and its guard.
 
-    method: str = "none"  # "none", "point_to_point" or "point_to_plane"
-    max_iterations: int = 10
-    max_correspondence_distance: float = 0.05  # unit-box units (the source's bounding box is 1)
-    num_points: int = 5000  # points per cloud for ICP and the fitness measure
-    # Guard against a wrong global estimate (e.g. a symmetric shape flipped): when the confidence after
-    # refinement is below `guard_below`, ICP also runs from the initial guess (identity if none), with the
-    # wide cut-off `guard_distance` and `guard_iterations`; the start whose result overlaps the target
-    # better (fitness) wins. 0 turns the guard off. Chosen on training-split pairs (MODEL_CARD.md).
-    guard_below: float = 0.4
-    guard_distance: float = 0.5  # unit-box units: ICP from the initial guess, as a skilled user runs it
-    guard_iterations: int = 50
+    Guard against a wrong global estimate (e.g. a symmetric shape flipped): when the confidence after
+    refinement is below `guard_below`, ICP also runs from the initial guess (identity if none) with the
+    wide cut-off `guard_distance` and `guard_iterations`; the start whose result overlaps the target
+    better (fitness) wins. 0 turns the guard off. Chosen on training-split pairs (MODEL_CARD.md).
+    """
+
+    method: str = setting("none", "ICP after PDSAC.", choices=("none", "point_to_point", "point_to_plane"))
+    max_iterations: int = setting(10, "ICP iterations.", low=1, high=1000)
+    max_correspondence_distance: float = setting(0.05, "ICP correspondence distance, unit-box units.",
+                                                 low=1e-6, high=1.0)
+    num_points: int = setting(5000, "Points per cloud used by ICP and the fitness measure.", low=16,
+                              high=1_000_000)
+    guard_below: float = setting(0.4, "Below this confidence ICP also runs from the initial guess; the "
+                                 "better-overlapping start wins (0: off).", low=0.0, high=1.0)
+    guard_distance: float = setting(0.5, "ICP correspondence distance from the initial guess, unit-box units.",
+                                    low=1e-6, high=10.0)
+    guard_iterations: int = setting(50, "ICP iterations from the initial guess.", low=1, high=1000)
 
     def __post_init__(self) -> None:
-        _check(
-            self.method in ("none", "point_to_point", "point_to_plane"),
-            "refine.method must be 'none', 'point_to_point' or 'point_to_plane'",
-        )
-        _check(self.max_iterations >= 1, "refine.max_iterations must be >= 1")
-        _check(self.max_correspondence_distance > 0, "refine.max_correspondence_distance must be > 0")
-        _check(self.num_points >= 16, "refine.num_points must be >= 16")
-        _check(0.0 <= self.guard_below <= 1.0, "refine.guard_below must be in [0, 1]")
-        _check(self.guard_distance > 0, "refine.guard_distance must be > 0")
-        _check(self.guard_iterations >= 1, "refine.guard_iterations must be >= 1")
+        check_ranges(self, "refine.")
 
 
 @dataclass(frozen=True)
 class RegistrationConfig:
-    """Everything the registration API needs besides the network weights."""
+    """Everything the registration pipeline needs besides the network weights."""
 
-    pdsac: PDSACConfig = field(default_factory=PDSACConfig)
-    refine: RefineConfig = field(default_factory=RefineConfig)
-    passes: int = 1  # network + PDSAC passes; pass k registers the residual left by pass k-1
-    min_points: int = 32  # fewer finite points than this raises TooFewPointsError
-    seed: int | None = 0  # subsampling and hypothesis seed; None draws fresh randomness
-    device: str = "cpu"
+    pdsac: PDSACConfig = setting(PDSACConfig(), "PDSAC settings.")
+    refine: RefineConfig = setting(RefineConfig(), "Refinement settings.")
+    min_points: int = setting(32, "Clouds with fewer finite points fail (TooFewPointsError).", low=4,
+                              high=1_000_000)
+    seed: int | None = setting(0, "Subsampling and PDSAC seed; None draws fresh randomness.")
+    device: str = setting("cpu", "Torch device: cpu, cuda or cuda:<index>.", start_up=True)
 
     def __post_init__(self) -> None:
-        _check(self.min_points >= 4, "min_points must be >= 4")
-        _check(self.passes >= 1, "passes must be >= 1")
+        check_ranges(self)
+        _check(self.device == "cpu" or self.device == "cuda" or (
+            self.device.startswith("cuda:") and self.device[5:].isdigit()),
+            f"device must be cpu, cuda or cuda:<index>, got {self.device!r}")
 
 
 def _check(condition: bool, message: str) -> None:

@@ -20,7 +20,6 @@ least squares on the union's inliers: T_est = T_BA, so that target ~ T_est sourc
 
 from __future__ import annotations
 
-import time
 from dataclasses import dataclass
 
 import torch
@@ -154,36 +153,3 @@ def pdsac_bidirectional(
     else:
         inliers = residuals(T, src, dst) < cfg.inlier_threshold
     return T, res_a, res_b, inliers
-
-
-def register_batch(
-    model: torch.nn.Module,
-    a: torch.Tensor,
-    b: torch.Tensor,
-    cfg: PDSACConfig,
-    passes: int = 1,
-    generator: torch.Generator | None = None,
-    timings: dict[str, float] | None = None,
-) -> tuple[torch.Tensor, object, torch.Tensor, torch.Tensor]:
-    """Network + PDSAC on (B, N, 3) batches, optionally repeated on the residual.
-
-    Pass k runs the network on (T a, b), where T is the estimate so far, and composes its result:
-    T <- T_k T. Returns (T_est (B, 4, 4) with b ~ T_est a, the last GenRegOutput, union inliers, and the
-    estimate the last pass started from: its B_g is in the frame of that moved source).
-    Seconds spent in the network and in PDSAC are added to `timings` ('network', 'pdsac') if given.
-    """
-    timings = {} if timings is None else timings
-    T = torch.eye(4, dtype=a.dtype, device=a.device).expand(a.shape[0], 4, 4)
-    for _ in range(passes):
-        start = T
-        moved = apply_transform(T, a)
-        t0 = time.perf_counter()
-        out = model(moved, b)
-        t1 = time.perf_counter()
-        T_k, _, _, inliers = pdsac_bidirectional(
-            moved, out.source_generated, b, out.target_generated, cfg, generator
-        )
-        T = T_k @ T
-        timings["network"] = timings.get("network", 0.0) + t1 - t0
-        timings["pdsac"] = timings.get("pdsac", 0.0) + time.perf_counter() - t1
-    return T, out, inliers, start

@@ -11,6 +11,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from genreg_core.config import check_ranges, setting
 from genreg_core.errors import ConfigError
 
 
@@ -18,15 +19,18 @@ from genreg_core.errors import ConfigError
 class PreprocessConfig:
     """Which filters run, in this order: range, crop box, voxel grid. Zero / None switches one off."""
 
-    min_range: float = 0.0  # drop points closer than this to the origin (0: off)
-    max_range: float = 0.0  # drop points farther than this (0: off)
-    crop_min: tuple[float, float, float] | None = None  # axis-aligned box kept (both or neither)
-    crop_max: tuple[float, float, float] | None = None
-    voxel_size: float = 0.0  # voxel edge; one centroid per occupied voxel (0: off)
+    min_range: float = setting(0.0, "Drop points closer than this to the sensor origin, m (0: off).",
+                               low=0.0, high=1e4)
+    max_range: float = setting(0.0, "Drop points farther than this from the sensor origin, m (0: off).",
+                               low=0.0, high=1e4)
+    crop_min: tuple[float, ...] | None = setting(None, "Crop box minimum corner [x, y, z] in the cloud's "
+                                                 "frame, m (none: off; both corners or neither).")
+    crop_max: tuple[float, ...] | None = setting(None, "Crop box maximum corner [x, y, z], m (none: off).")
+    voxel_size: float = setting(0.0, "Voxel-grid downsampling edge, m; one centroid per voxel (0: off).",
+                                low=0.0, high=100.0)
 
     def __post_init__(self) -> None:
-        if self.min_range < 0 or self.max_range < 0 or self.voxel_size < 0:
-            raise ConfigError("min_range, max_range and voxel_size must be >= 0")
+        check_ranges(self, "preprocess.")
         if self.max_range and self.min_range >= self.max_range:
             raise ConfigError(f"min_range {self.min_range} must be < max_range {self.max_range}")
         if (self.crop_min is None) != (self.crop_max is None):

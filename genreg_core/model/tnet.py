@@ -5,7 +5,6 @@ from __future__ import annotations
 import torch
 from torch import nn
 
-from genreg_core.config import ModelConfig
 from genreg_core.geometry import params_to_transform
 from genreg_core.model.layers import mlp, point_mlp, zero_last_layer
 
@@ -18,10 +17,10 @@ class TNet(nn.Module):
     identity. `forward(a, b)` -> (B, 4, 4).
     """
 
-    def __init__(self, cfg: ModelConfig) -> None:
+    def __init__(self, channels: tuple[int, ...], head: tuple[int, ...], norm: str = "group") -> None:
         super().__init__()
-        self.features = point_mlp((3, *cfg.tnet_channels), norm=cfg.norm)
-        self.head = mlp((2 * cfg.tnet_channels[-1], *cfg.tnet_head, 6))
+        self.features = point_mlp((3, *channels), norm=norm)
+        self.head = mlp((2 * channels[-1], *head, 6))
         zero_last_layer(self.head)
 
     def forward(self, a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:

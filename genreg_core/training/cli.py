@@ -1,8 +1,8 @@
 """`genreg-train`: train GenReg from a YAML config, resumable; works under torchrun.
 
-    genreg-train --config config/train_modelnet40.yaml            # fresh run into out_dir
-    genreg-train --config config/train_modelnet40.yaml --resume   # continue exactly from last.ckpt
-    torchrun --nproc_per_node 2 -m genreg_core.training.cli --config ...   # DDP
+    genreg-train --config config/train_modelnet40_ppf.yaml            # fresh run into out_dir
+    genreg-train --config config/train_modelnet40_ppf.yaml --resume  # continue exactly from last.ckpt
+    torchrun --standalone --nproc_per_node 2 -m genreg_core.training.cli --config ...   # DDP (gloo on CPU)
 """
 
 from __future__ import annotations
@@ -10,6 +10,7 @@ from __future__ import annotations
 import argparse
 import sys
 
+import torch.distributed as dist
 import yaml
 
 from genreg_core.errors import GenRegError
@@ -46,6 +47,9 @@ def main(argv: list[str] | None = None) -> int:
     except (GenRegError, FileNotFoundError, yaml.YAMLError) as exc:
         print(f"genreg-train: error: {exc}", file=sys.stderr)
         return 2
+    finally:
+        if dist.is_initialized():
+            dist.destroy_process_group()
     if trainer.is_main:
         print("final validation: " + ", ".join(f"{k} {v:.4g}" for k, v in metrics.items()))
     return 0

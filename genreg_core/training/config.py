@@ -27,7 +27,7 @@ class DataConfig:
 
 @dataclass(frozen=True)
 class LossWeights:
-    """Weights of the total loss; the paper: 1, 1, 1, 0.01, 1 (correspondence and tnet are our levers, 0 there)."""
+    """Weights of the total loss; the paper: 1, 1, 1, 0.01, 1 (correspondence and matching are our levers, 0 there)."""
 
     absolute: float = 1.0
     relative: float = 1.0
@@ -35,8 +35,7 @@ class LossWeights:
     adversarial: float = 0.01
     transformation: float = 1.0
     correspondence: float = 0.0
-    tnet: float = 0.0  # our lever: T-Net pose supervision (centred clouds: ideal is R_gt)
-    matching: float = 0.0  # our lever: soft-pointer cross-entropy ("attention" interaction only)
+    matching: float = 0.0  # our lever: soft-pointer cross-entropy (architecture "genreg" only)
     matching_sigma: float = 0.05  # width of the true soft match, unit-box units (~ the point spacing)
 
 
@@ -84,7 +83,6 @@ class TrainConfig:
     checkpoint_every: int = 200
     validate_every: int = 500
     validation_pairs: int = 64
-    validation_passes: int = 2  # also report validation with this many network passes
     log_every: int = 10
 
 

@@ -29,8 +29,7 @@ def plot_curve(rows: list[dict[str, float]], out: str | Path, title: str = "") -
     val = validation_rows(rows)
     fig, axes = plt.subplots(1, 2, figsize=(11, 4))
     hours = [r["elapsed_s"] / 3600 for r in val]
-    for key, label in (("val_re_mean", "RE mean, 1 pass"), ("val_re_median", "RE median, 1 pass"),
-                       ("val2_re_mean", "RE mean, 2 passes")):
+    for key, label in (("val_re_mean", "RE mean"), ("val_re_median", "RE median")):
         ys = [r[key] for r in val if key in r]
         if ys:
             axes[0].plot(hours[: len(ys)], ys, marker="o", ms=3, label=label)
@@ -62,8 +61,7 @@ def main(argv: list[str] | None = None) -> int:
     plot_curve(rows, args.out, Path(args.log).parent.name)
     for r in validation_rows(rows):
         print(f"iteration {int(r['iteration']):6d}  {r['elapsed_s'] / 3600:6.2f} h  "
-              f"RE mean {r['val_re_mean']:6.2f}  median {r['val_re_median']:6.2f}  "
-              f"2-pass mean {r.get('val2_re_mean', float('nan')):6.2f}")
+              f"RE mean {r['val_re_mean']:6.2f}  median {r['val_re_median']:6.2f}")
     return 0
 
 

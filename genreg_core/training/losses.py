@@ -6,7 +6,7 @@
 - adversarial: discriminator real/fake (standard GAN or WGAN-GP)
 - transformation: |T_est T_gt^-1 - I| (Frobenius), as DSAC's expectation over PDSAC's hypotheses
 - correspondence (our lever, weight 0 in the paper's recipe): mean |A_g,i - T_gt A_i|
-- matching (our lever, "attention" interaction only): cross-entropy of the pointer's weights against
+- matching (our lever, architecture "genreg" only): cross-entropy of the pointer's weights against
   the true soft match
 """
 
@@ -67,13 +67,6 @@ def transformation_error(T_est: torch.Tensor, T_gt: torch.Tensor) -> torch.Tenso
 def expected_transformation_loss(hypotheses: torch.Tensor, weights: torch.Tensor, T_gt: torch.Tensor) -> torch.Tensor:
     """DSAC: sum_h w_h |T_h T_gt^-1 - I| with hypotheses (B, m, 4, 4), weights (B, m) -> (B,)."""
     return (weights * transformation_error(hypotheses, T_gt[:, None])).sum(dim=-1)
-
-
-def tnet_pose_loss(T_tnet: torch.Tensor, R_pre: torch.Tensor, T_gt: torch.Tensor) -> torch.Tensor:
-    """|R_tnet R_pre - R_gt|_F + |t_tnet|: on centred clouds the ideal pose normalisation is the
-    ground-truth rotation with no translation. (B, 4, 4), (B, 3, 3), (B, 4, 4) -> (B,)."""
-    R = T_tnet[:, :3, :3] @ R_pre
-    return torch.linalg.norm(R - T_gt[:, :3, :3], dim=(-2, -1)) + torch.linalg.norm(T_tnet[:, :3, 3], dim=-1)
 
 
 def matching_loss(log_weights: torch.Tensor, moved: torch.Tensor, other: torch.Tensor, sigma: float) -> torch.Tensor:

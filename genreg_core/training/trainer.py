@@ -22,23 +22,23 @@ from torch import nn
 from tqdm import tqdm
 
 from genreg_core.checkpoint import load_checkpoint, save_checkpoint
-from genreg_core.config import PDSACConfig
+from genreg_core.config import RegistrationConfig
 from genreg_core.geometry import apply_transform, invert_transform
 from genreg_core.metrics import chamfer_distance, rotation_error_deg
+from genreg_core.model import GenRegOutput, build_model
 from genreg_core.model.discriminator import Discriminator
-from genreg_core.model.genreg import GenRegNet, GenRegOutput
-from genreg_core.pdsac import pdsac, register_batch
+from genreg_core.pdsac import pdsac
+from genreg_core.registration import Registrar
 from genreg_core.training import losses as L
 from genreg_core.training.config import TrainConfig
 from genreg_core.training.datasets import build_pair_sets, make_batch, validation_batches
 
-INFERENCE_PDSAC = PDSACConfig()  # validation measures what the registration API will do
+INFERENCE = RegistrationConfig()  # validation measures what the registration pipeline does (network + PDSAC)
 
 LOG_FIELDS = (
     "iteration", "generator_steps", "elapsed_s", "lr", "max_angle_deg", "loss", "absolute", "relative",
-    "cycle", "adversarial", "transformation", "correspondence", "tnet", "matching", "discriminator", "skipped_steps",
+    "cycle", "adversarial", "transformation", "correspondence", "matching", "discriminator", "skipped_steps",
     "val_re_mean", "val_re_median", "val_te_mean", "val_cd_mean",
-    "val2_re_mean", "val2_re_median", "val2_te_mean", "val2_cd_mean",
 )
 
 
@@ -46,7 +46,7 @@ class CycleGenerator(nn.Module):
     """Both generator passes in one forward, so DDP sees one forward per backward:
     G(A, B) -> (A_g, B_g), and, when asked, the cycle G(A_g, B_g) -> back to (A, B)."""
 
-    def __init__(self, generator: GenRegNet) -> None:
+    def __init__(self, generator: nn.Module) -> None:
         super().__init__()
         self.generator = generator
 
@@ -71,7 +71,7 @@ class Trainer:
         self.out_dir = Path(cfg.out_dir)
         self.is_main = self.rank == 0
         self.show_progress = show_progress and self.is_main
-        self.generator = GenRegNet(cfg.model).to(self.device)
+        self.generator = build_model(cfg.model).to(self.device)
         self.discriminator = Discriminator(cfg.model.discriminator_hidden).to(self.device)
         self.gen_step_module: nn.Module = CycleGenerator(self.generator)
         self.disc_module: nn.Module = self.discriminator
@@ -183,7 +183,6 @@ class Trainer:
             sigma = cfg.loss.matching_sigma
             terms["matching"] = (L.matching_loss(log_w_a, apply_transform(T_gt, a) - c_b, b - c_b, sigma)
                                  + L.matching_loss(log_w_b, apply_transform(T_inv, b) - c_a, a - c_a, sigma)).mean()
-        terms["tnet"] = L.tnet_pose_loss(out.tnet, out.prealign, T_gt).mean() if cfg.loss.tnet > 0 else zero
         return terms
 
     def discriminator_update(self, real: torch.Tensor, fake: torch.Tensor) -> float:
@@ -202,26 +201,21 @@ class Trainer:
     # ----------------------------------------------------------------- validation
     @torch.no_grad()
     def validate(self) -> dict[str, float]:
-        """RE/TE/CD of network + PDSAC (the API's settings: hard selection, refit) on the fixed validation pairs, with
-        one pass (`val_*`) and with `validation_passes` passes on the residual (`val2_re_*`)."""
-        self.generator.eval()
-        metrics: dict[str, float] = {}
-        for prefix, passes in (("val", 1), ("val2", self.cfg.validation_passes)):
-            if prefix == "val2" and passes <= 1:
-                continue
-            re, te, cd = [], [], []
-            gen = torch.Generator().manual_seed(self.cfg.seed)
-            for batch in self.val_batches:
-                a, b, T_gt = (batch[k].to(self.device) for k in ("source", "target", "transform"))
-                T_est, *_ = register_batch(self.generator, a, b, INFERENCE_PDSAC, passes, gen)
-                for i in range(len(a)):
-                    Te, Tg = T_est[i].double().cpu().numpy(), T_gt[i].double().cpu().numpy()
-                    re.append(rotation_error_deg(Te[:3, :3], Tg[:3, :3]))
-                    te.append(float(np.linalg.norm(Te[:3, 3] - Tg[:3, 3])))
-                    cd.append(chamfer_distance(apply_transform(Te, a[i].double().cpu().numpy()), b[i].cpu().numpy()))
-            metrics |= {f"{prefix}_re_mean": float(np.mean(re)), f"{prefix}_re_median": float(np.median(re)),
-                        f"{prefix}_te_mean": float(np.mean(te)), f"{prefix}_cd_mean": float(np.mean(cd))}
-        return metrics
+        """RE/TE/CD of network + PDSAC with the pipeline's own settings (`Registrar.estimate`: hard
+        selection, refit) on the fixed validation pairs."""
+        registrar = Registrar(self.generator, INFERENCE)  # puts the generator in eval mode
+        re, te, cd = [], [], []
+        gen = torch.Generator().manual_seed(self.cfg.seed)
+        for batch in self.val_batches:
+            a, b, T_gt = (batch[k].to(self.device) for k in ("source", "target", "transform"))
+            T_est = registrar.estimate(a, b, gen).transform
+            for i in range(len(a)):
+                Te, Tg = T_est[i].double().cpu().numpy(), T_gt[i].double().cpu().numpy()
+                re.append(rotation_error_deg(Te[:3, :3], Tg[:3, :3]))
+                te.append(float(np.linalg.norm(Te[:3, 3] - Tg[:3, 3])))
+                cd.append(chamfer_distance(apply_transform(Te, a[i].double().cpu().numpy()), b[i].cpu().numpy()))
+        return {"val_re_mean": float(np.mean(re)), "val_re_median": float(np.median(re)),
+                "val_te_mean": float(np.mean(te)), "val_cd_mean": float(np.mean(cd))}
 
     # ----------------------------------------------------------------- state
     def _state(self) -> dict:
@@ -286,11 +280,22 @@ class Trainer:
             if it % cfg.checkpoint_every == 0 or it == end:
                 self.save()
             val = {}
-            if max_seconds is not None and time.perf_counter() - start_wall > max_seconds:
+            if max_seconds is not None and self._all_agree(time.perf_counter() - start_wall > max_seconds):
                 self.save()
                 break
         bar.close()
-        return val or (self.validate() if self.is_main else {})
+        val = val or (self.validate() if self.is_main else {})
+        if self.world > 1:
+            dist.barrier()  # no rank leaves while rank 0 still validates and saves
+        return val
+
+    def _all_agree(self, flag: bool) -> bool:
+        """True on every rank when `flag` is true on any (ranks must stop at the same iteration)."""
+        if self.world == 1:
+            return flag
+        value = torch.tensor([float(flag)])
+        dist.all_reduce(value, op=dist.ReduceOp.MAX)
+        return bool(value.item())
 
     def _truncate_log(self) -> None:
         """Drop log rows written after the checkpoint we resume from, so the curve has no repeats."""

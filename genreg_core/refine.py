@@ -1,0 +1,84 @@
+"""Pipeline stage "refine": the one ICP wrapper of genreg (Open3D) and the refinement guard.
+
+Every ICP in the project (the pipeline's refine stage and its guard, the benchmark baselines, the replay
+harness's reference) calls `icp`. Transforms are target_from_source (`genreg_core.geometry`), in the
+units of the points given.
+"""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import numpy as np
+import open3d as o3d
+
+from genreg_core.config import RefineConfig
+
+NORMAL_KNN = 20  # target normals for point-to-plane: this many nearest neighbours (no radius given)
+
+
+def o3d_cloud(points: np.ndarray) -> o3d.geometry.PointCloud:
+    """An Open3D cloud of the finite rows of an (N, 3) array (float64 copy)."""
+    points = np.asarray(points, dtype=np.float64)
+    return o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points))
+
+
+def downsample(cloud: o3d.geometry.PointCloud, voxel_size: float) -> o3d.geometry.PointCloud:
+    """Open3D voxel-grid downsampling (centroid per voxel); 0 keeps the cloud."""
+    return cloud.voxel_down_sample(voxel_size) if voxel_size > 0 else cloud
+
+
+def estimate_normals(cloud: o3d.geometry.PointCloud, radius: float | None = None) -> o3d.geometry.PointCloud:
+    """Normals from `NORMAL_KNN` neighbours, or from a radius search (at most 30) when `radius` is given."""
+    search = (o3d.geometry.KDTreeSearchParamKNN(NORMAL_KNN) if radius is None
+              else o3d.geometry.KDTreeSearchParamHybrid(radius=radius, max_nn=30))
+    cloud.estimate_normals(search)
+    return cloud
+
+
+def icp(
+    source: np.ndarray | o3d.geometry.PointCloud,
+    target: np.ndarray | o3d.geometry.PointCloud,
+    init: np.ndarray | None = None,
+    *,
+    method: str = "point_to_plane",
+    max_distance: float,
+    max_iterations: int,
+    voxel_size: float = 0.0,
+    normal_radius: float | None = None,
+) -> np.ndarray:
+    """Open3D ICP from `init` (identity if None): the 4x4 target_from_source it converges to.
+
+    `method`: "point_to_point" or "point_to_plane" (target normals by `estimate_normals`, unless the target
+    cloud already has them). Both clouds are voxel-downsampled first when `voxel_size` > 0.
+    """
+    reg = o3d.pipelines.registration
+    src = source if isinstance(source, o3d.geometry.PointCloud) else o3d_cloud(source)
+    tgt = target if isinstance(target, o3d.geometry.PointCloud) else o3d_cloud(target)
+    src, tgt = downsample(src, voxel_size), downsample(tgt, voxel_size)
+    if method == "point_to_plane":
+        if not tgt.has_normals():
+            estimate_normals(tgt, normal_radius)
+        estimation = reg.TransformationEstimationPointToPlane()
+    elif method == "point_to_point":
+        estimation = reg.TransformationEstimationPointToPoint()
+    else:
+        raise ValueError(f"icp method must be 'point_to_point' or 'point_to_plane', got {method!r}")
+    result = reg.registration_icp(
+        src, tgt, max_distance, np.eye(4) if init is None else init, estimation,
+        reg.ICPConvergenceCriteria(max_iteration=max_iterations),
+    )
+    return np.asarray(result.transformation).copy()
+
+
+def refine(src: np.ndarray, tgt: np.ndarray, T_init: np.ndarray, cfg: RefineConfig) -> np.ndarray:
+    """The pipeline's refine stage: `cfg.max_iterations` ICP iterations of `cfg.method` from T_init."""
+    return icp(src, tgt, T_init, method=cfg.method, max_distance=cfg.max_correspondence_distance,
+               max_iterations=cfg.max_iterations)
+
+
+def guard_icp(src: np.ndarray, tgt: np.ndarray, cfg: RefineConfig) -> np.ndarray:
+    """The refinement guard's candidate: ICP from the initial guess (identity in the frame of the
+    guess-moved source) with the guard's cut-off and iterations."""
+    guard = replace(cfg, max_correspondence_distance=cfg.guard_distance, max_iterations=cfg.guard_iterations)
+    return refine(src, tgt, np.eye(4), guard)
