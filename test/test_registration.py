@@ -116,26 +116,30 @@ def test_shipped_scene_model_registers_a_real_300k_point_pair():
     T = res.transformation
     assert np.allclose(T[3], [0, 0, 0, 1]) and np.isclose(np.linalg.det(T[:3, :3]), 1, atol=1e-5)
     re, te = transform_errors(T, T_gt)
-    assert re < 1.0 and te < 0.03, (re, te)
+    motion_deg = transform_errors(np.eye(4), T_gt)[0]  # about 4 deg: the pair's own motion
+    assert re < 1.5 and te < 0.1 and re < 0.3 * motion_deg, (re, te, motion_deg)
     assert res.aligned_source.shape == (len(src), 3)
 
 
-def test_generated_target_is_in_the_source_frame_with_an_initial_guess(untrained):
-    """B_g is B expressed in the source's own frame, whatever the initial guess."""
+def test_generated_clouds_are_in_the_other_frame_with_an_initial_guess():
+    """The shipped object model on an unseen-category pair, started from a wrong initial guess: A_g lies on
+    the target's surface and B_g on the source's (B_g is B expressed in the source's own frame)."""
     from scipy.spatial import cKDTree
 
-    src = _shape(3000, seed=6)
-    T = random_transform(np.random.default_rng(3), 10.0, 0.5)
-    tgt = apply_transform(T, src)
-    guess = random_transform(np.random.default_rng(4), 5.0, 0.2)
-    reg = Registrar.from_checkpoint(untrained)
-    res = reg.register(src, tgt, initial_guess=guess)
+    from genreg_core.data import ModelNetPairs, load_modelnet40
+    from genreg_core.score import point_spacing
+
+    pair = ModelNetPairs(load_modelnet40("test", "unseen"), 512, "clean", seed=7)[5]
+    src, tgt = pair["source"].astype(np.float64), pair["target"].astype(np.float64)
+    guess = random_transform(np.random.default_rng(4), 20.0, 0.2)
+    res = Registrar.from_checkpoint("modelnet40").register(src, tgt, initial_guess=guess)
 
     def on(points, cloud):  # mean distance from `points` to the surface sampled by `cloud`
         return cKDTree(cloud).query(points)[0].mean()
 
-    back = apply_transform(np.linalg.inv(res.transformation), tgt)  # B in the source frame per the result
-    assert on(res.target_generated, back) < 0.2 * on(res.target_generated, tgt)
+    spacing = point_spacing(src)  # median nearest-neighbour distance within the source
+    assert on(res.source_generated, tgt) < 1e-5  # A_g: picked target points
+    assert on(res.target_generated, src) < 2.0 * spacing < 0.5 * on(res.target_generated, tgt)
 
 
 class _WrongNet(GenRegNet):
