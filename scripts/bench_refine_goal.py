@@ -40,12 +40,13 @@ def main() -> int:
     from tqdm import tqdm
 
     from genreg_core.bench.baselines import BaselineParams, fpfh_ransac_icp
-    from genreg_core.bench.suites import BenchOptions, plan_pairs, resolve_suite, thread_report
+    from genreg_core.bench.datasets import BenchOptions, plan_suite
+    from genreg_core.bench.runner import thread_report
     from genreg_core.config import RefineConfig, RegistrationConfig
     from genreg_core.metrics import transform_errors
     from genreg_core.registration import Registrar
 
-    _, suite, options = resolve_suite("full", BenchOptions(object_points=512, seed=0, threads=args.threads))
+    _, _, plan = plan_suite("full", BenchOptions(object_points=512, seed=0, threads=args.threads), DATASETS, args.pairs)
     registrar = Registrar.from_checkpoint(
         args.checkpoint, RegistrationConfig(seed=0, refine=RefineConfig(method="point_to_point")))
     params = BaselineParams.unit_box(args.threads)
@@ -55,7 +56,7 @@ def main() -> int:
     print("| dataset | method | RE mean (deg) | RE median (deg) | success | ms per pair | time / FPFH+RANSAC+ICP | "
           "guard: initial guess won |")
     print("|---|---|---|---|---|---|---|---|")
-    for spec, pairs, indices in plan_pairs(suite, list(DATASETS), options, args.pairs):
+    for spec, pairs, indices in plan:
         items = [pairs[i] for i in indices]
         clouds = [(it["source"].astype(np.float64), it["target"].astype(np.float64)) for it in items]
         truths = [np.asarray(it["transform"], dtype=np.float64) for it in items]

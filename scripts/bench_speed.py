@@ -3,8 +3,9 @@
 
     python scripts/bench_speed.py --threads 2 --repeats 20
 
-For N = 512, 1024 and 2048: an untrained GenReg model of that N (speed does not depend on the weights;
-`--checkpoint` times a trained model, and its architecture, at its own N instead)
+For N = 512, 1024 and 2048: an untrained model of the shipped `modelnet40` architecture at that N (speed
+does not depend on the weights; `--checkpoint` times a trained model, and its architecture, at its own N
+instead)
 registers the same pairs as Open3D point-to-point ICP (from identity) and FPFH + RANSAC, in this run,
 batch 1, with the given thread count; medians over the pairs. Pairs: ModelNet40 unseen categories
 (unit box, paper transform) for N <= 1024 (the shapes have 1024 points), 7-Scenes redkitchen
@@ -36,7 +37,7 @@ def parse_args() -> argparse.Namespace:
     p.add_argument("--frame-repeats", type=int, default=3, help="repeats of the 300k-point frame pair")
     p.add_argument("--batch", type=int, default=16, help="batched network + PDSAC throughput (0: skip)")
     p.add_argument("--checkpoint", help="time this checkpoint (name or path) at its own N instead of untrained "
-                   "paper-architecture models at --sizes")
+                   "models of the shipped architecture at --sizes")
     p.add_argument("--json", help="also write the figures to this JSON file")
     return p.parse_args()
 
@@ -47,14 +48,18 @@ def main() -> int:
 
     configure_threads(args.threads)  # before Open3D loads
 
+    from dataclasses import replace
+
     import numpy as np
     import torch
 
     from genreg_core.bench.baselines import BaselineParams, fpfh_ransac, icp_point_to_point
-    from genreg_core.bench.suites import measure_throughput, thread_report
-    from genreg_core.config import ModelConfig, RegistrationConfig
+    from genreg_core.bench.methods import measure_throughput
+    from genreg_core.bench.runner import thread_report
+    from genreg_core.checkpoint import load_checkpoint
+    from genreg_core.config import RegistrationConfig
     from genreg_core.data import REDKITCHEN_VAL_FRAMES, FMRPairs, ModelNetPairs, RGBDSequence, load_modelnet40
-    from genreg_core.model.genreg import GenRegNet
+    from genreg_core.model import build_model
     from genreg_core.registration import Registrar
 
     def med(xs: list[float]) -> float:  # seconds -> median ms
@@ -70,7 +75,8 @@ def main() -> int:
         if args.checkpoint:
             return Registrar.from_checkpoint(args.checkpoint, RegistrationConfig(seed=0))
         torch.manual_seed(0)
-        return Registrar(GenRegNet(ModelConfig(num_points=n)), RegistrationConfig(seed=0))
+        shipped = load_checkpoint("modelnet40")[0].config
+        return Registrar(build_model(replace(shipped, num_points=n)), RegistrationConfig(seed=0))
 
     if args.checkpoint:
         args.sizes = [registrar(0).num_points]
@@ -114,7 +120,7 @@ def main() -> int:
         print(f"| {r['N']} | {r['pairs']} | {r['total_ms']:.1f} | {r['preprocess_ms']:.1f} | {r['network_ms']:.1f} | "
               f"{r['pdsac_ms']:.1f} | {r['postprocess_ms']:.1f} | {r['icp_ms']:.1f} | {r['fpfh_ransac_ms']:.1f} | "
               f"{r['total_ms'] / r['icp_ms']:.1f}x | {r['total_ms'] / r['fpfh_ransac_ms']:.2f}x | {batched} | {goal} |")
-    weights = f"checkpoint {args.checkpoint}" if args.checkpoint else "untrained paper-architecture weights"
+    weights = f"checkpoint {args.checkpoint}" if args.checkpoint else "untrained weights of the shipped architecture"
     print(f"(ms; GenReg = network + PDSAC end to end through Registrar.register, {weights})")
 
     # A real frame pair at full resolution, metres: the API resamples to N; baselines downsample themselves.

@@ -5,8 +5,9 @@
 
 ModelNet40 seen categories, *train* split (never the benchmark's test pairs), partial variant at N=512,
 seed 1. Per pair: the API without the guard (RE, confidence, fitness) and the guard's own candidate,
-computed as the API does (ICP from identity in the API's normalised frame with the guard's cut-off and
-iterations; its fitness). The guard runs when the confidence is below `guard_below` and takes the
+computed as the API does: the pair prepared by `Registrar.prepare`, then `refine.guard_icp` on its
+refinement clouds (ICP from identity in the normalised frame with the guard's cut-off and iterations) and
+`score.overlap_fitness` at the API's fitness distance. The guard runs when the confidence is below `guard_below` and takes the
 candidate when its fitness is higher. The table also tries requiring a fitness margin (the API uses
 none: margins gained nothing on these pairs). Per setting: the mean / median RE, the share of pairs on
 which the guard runs (its cost) and the share on which it switches.
@@ -38,15 +39,10 @@ def main() -> int:
 
     from genreg_core.config import RefineConfig, RegistrationConfig
     from genreg_core.data import ModelNetPairs, load_modelnet40
-    from genreg_core.geometry import denormalize_transform, unit_box_normalization
     from genreg_core.metrics import transform_errors
-    from genreg_core.registration import (
-        FITNESS_SPACINGS,
-        Registrar,
-        guard_icp,
-        overlap_fitness,
-        point_spacing,
-    )
+    from genreg_core.refine import guard_icp
+    from genreg_core.registration import Registrar
+    from genreg_core.score import fitness_distance, overlap_fitness
 
     refine = RefineConfig(method="point_to_point", guard_below=0.0)
     registrar = Registrar.from_checkpoint(args.checkpoint, RegistrationConfig(seed=0, refine=refine))
@@ -57,12 +53,11 @@ def main() -> int:
         src, tgt = item["source"].astype(np.float64), item["target"].astype(np.float64)
         T_gt = np.asarray(item["transform"], dtype=np.float64)
         plain = registrar.register(src, tgt)
-        offset, scale = unit_box_normalization(src)  # the API's frame (no initial guess)
-        src_n, tgt_n = (src - offset) / scale, (tgt - offset) / scale
-        T_prior = guard_icp(src_n, tgt_n, refine)
-        fitness_prior, _ = overlap_fitness(src_n, tgt_n, T_prior, FITNESS_SPACINGS * point_spacing(tgt_n))
+        p = registrar.prepare(src, tgt)  # the API's frame and refinement clouds (no initial guess)
+        T_prior = guard_icp(p.dense_src, p.dense_tgt, refine)
+        fitness_prior, _ = overlap_fitness(p.dense_src, p.dense_tgt, T_prior, fitness_distance(p.dense_tgt))
         rows.append((transform_errors(plain.transformation, T_gt)[0], plain.confidence, plain.fitness,
-                     transform_errors(denormalize_transform(T_prior, offset, scale), T_gt)[0], fitness_prior))
+                     transform_errors(p.to_input_units(T_prior), T_gt)[0], fitness_prior))
     re, conf, fit, re_prior, fit_prior = np.array(rows).T
     print(f"{args.pairs} partial pairs, ModelNet40 train split (seen), N={registrar.num_points}, checkpoint "
           f"{args.checkpoint}\n\n| guard_below | guard_margin | RE mean (deg) | RE median (deg) | guard runs | "

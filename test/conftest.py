@@ -77,7 +77,7 @@ def run_bench_cli():
     import subprocess
     import sys
 
-    from genreg_core.bench.suites import DATASETS, BenchOptions
+    from genreg_core.bench.datasets import DATASETS, BenchOptions
     from genreg_core.errors import DataNotFoundError
 
     try:

@@ -1,22 +1,25 @@
 """Issue 5's ablations: the pose solver (PDSAC against Open3D's RANSAC on the same generated
-correspondences) and the backbone (PointMixer against DGCNN-only and PointNet++-style encoders, trained
-on the same budget).
+correspondences) and the backbone (the shipped PointMixer and DGCNN object models, optionally the paper's
+own generator).
 
-Backbone (`run_backbone_dataset`): each named checkpoint registers every pair as the API's `genreg`
-method does (network, then `pdsac_bidirectional`); records hold RE, TE, CD and success as in the suites,
-`seconds` = network + PDSAC, and the generation quality of the paper's ablation tables: `gen_cd`, the
-Chamfer distance, and `gen_mse`, the mean squared point error |A_g,i - T_gt A_i|^2, between the generated
-A_g and the truly moved source T_gt A (the N network inputs, dataset units).
+Both run the network as the API does: each pair is prepared by `Registrar.prepare` (`prepare_pair`
+with the registrar's settings: source and target resampled to the model's N with the config's seed,
+one similarity from the source's bounding box), then `Registrar.estimate` runs network + PDSAC on it
+with PDSAC's generator seeded as `Registrar.register` seeds it (`generate`). Its estimate is the suite's
+`genreg` method; its generated clouds are the correspondences the pose solvers share.
 
-Pose solver:
+Backbone (`run_backbone_dataset`): each named checkpoint registers every pair through `generate`;
+records hold RE, TE, CD and success as in the suites, `seconds` = network + PDSAC, `network_seconds`, and
+the generation quality of the paper's ablation tables: `gen_cd`, the Chamfer distance, and `gen_mse`, the
+mean squared point error |A_g,i - T_gt A_i|^2, between the generated A_g and the truly moved source
+T_gt A (the N network inputs, dataset units).
 
-Per pair the GenReg network runs once, on inputs prepared as `Registrar.register` prepares them (source
-and target resampled to the model's N with the config's seed, one similarity from the source's bounding
-box), so the `pdsac` row reproduces the suite's `genreg` method. Every solver then estimates T_BA
-(4x4, column vectors, target_from_source: b ~ R a + t) in normalised units from the union of the
-correspondences {A_i -> A_g,i} and {B_g,i -> B_i}, which all obey B-frame = T_BA A-frame (see `pdsac`):
+Pose solver: every solver estimates T_BA (4x4, column vectors, target_from_source: b ~ R a + t) in
+normalised units from the union of the correspondences {A_i -> A_g,i} and {B_g,i -> B_i}, which all obey
+B-frame = T_BA A-frame (see `pdsac`); solvers never run the network:
 - `pdsac`: `pdsac_bidirectional` with the RegistrationConfig's settings (m hypotheses of k points per
-  direction, truncated-residual score on the union, least-squares refit on the union's inliers);
+  direction, truncated-residual score on the union, least-squares refit on the union's inliers), from a
+  generator seeded like the API's, so that it reproduces `Registrar.estimate`;
 - `o3d-ransac`: Open3D `registration_ransac_based_on_correspondence` on the union: inlier distance =
   PDSAC's inlier_threshold, point-to-point (Kabsch) estimation, no checkers, best inlier count (then
   RMSE) wins, early exit at the criteria's confidence; it returns the best minimal-sample transform.
@@ -43,36 +46,41 @@ import open3d as o3d
 import torch
 from tqdm import tqdm
 
-from genreg_core.bench.suites import (
-    DEFAULT_CHECKPOINTS,
+from genreg_core.bench.datasets import (
     OBJECT,
     BenchOptions,
-    BenchRun,
     DatasetSpec,
+    PairTruth,
     Suite,
-    _cd_subset,
-    evaluate,
-    failure_fields,
-    plan_pairs,
-    resolve_suite,
-    run_meta,
+    pair_truth,
+    plan_suite,
 )
-from genreg_core.config import PDSACConfig, RegistrationConfig
-from genreg_core.errors import CheckpointError
-from genreg_core.geometry import apply_transform, denormalize_transform, unit_box_normalization
+from genreg_core.bench.methods import DEFAULT_CHECKPOINTS, MethodOutput, load_each, pdsac_generator
+from genreg_core.bench.runner import (
+    BenchRun,
+    dataset_info,
+    failure_fields,
+    run_dataset,
+    run_meta,
+    scored_fields,
+)
+from genreg_core.config import ModelConfig, PDSACConfig, RegistrationConfig
+from genreg_core.geometry import apply_transform
 from genreg_core.metrics import chamfer_distance
 from genreg_core.pdsac import pdsac_bidirectional, refit_on_inliers, union_correspondences, union_inlier_share
-from genreg_core.registration import Registrar, subsample, validate_cloud
+from genreg_core.prepare import PreparedPair
+from genreg_core.registration import Registrar
 
 reg = o3d.pipelines.registration
 
 POSE_SOLVER = "pose-solver"
 POSE_SOLVER_TITLE = "Ablation: pose solver (same generated correspondences)"
 BACKBONE = "backbone"
-BACKBONE_TITLE = "Ablation: backbone (same training budget)"
+BACKBONE_TITLE = "Ablation: backbone"
 ABLATIONS = (POSE_SOLVER, BACKBONE)
-# `scripts/ablation_backbone.sh` trains these (config/train_modelnet40_ppf.yaml, model.backbone = name)
-DEFAULT_BACKBONES = {name: f"runs/abl_{name}/last.pt" for name in ("pointmixer", "dgcnn", "pointnet2")}
+# The shipped object models; `scripts/ablation_backbone.sh` passes same-budget retrainings instead, and a
+# checkpoint of the paper's generator (ModelConfig.architecture "paper") can be added as a "paper" row.
+DEFAULT_BACKBONES = {"pointmixer": "modelnet40", "dgcnn": "modelnet40_dgcnn"}
 
 
 @dataclass(frozen=True)
@@ -95,6 +103,19 @@ class Correspondences:
 
 
 @dataclass(frozen=True)
+class Generated:
+    """One pair through `Registrar.estimate`: its correspondences, the prepared pair (the similarity back to
+    dataset units), the API's normalised estimate T_BA (4x4 float64), and the wall times of the network and
+    of network + PDSAC."""
+
+    correspondences: Correspondences
+    prepared: PreparedPair
+    transform_n: np.ndarray
+    network_seconds: float
+    seconds: float
+
+
+@dataclass(frozen=True)
 class RansacSettings:
     """Open3D RANSAC settings; the inlier distance is PDSAC's inlier_threshold."""
 
@@ -108,9 +129,8 @@ Solver = Callable[[Correspondences, PDSACConfig, int | None], np.ndarray]  # -> 
 
 def solve_pdsac(c: Correspondences, cfg: PDSACConfig, seed: int | None) -> np.ndarray:
     """The API's solver: `pdsac_bidirectional`, hypotheses drawn from a generator seeded like `Registrar`."""
-    gen = torch.Generator().manual_seed(seed) if seed is not None else None
     with torch.no_grad():
-        T, *_ = pdsac_bidirectional(c.a, c.a_gen, c.b, c.b_gen, cfg, gen)
+        T, *_ = pdsac_bidirectional(c.a, c.a_gen, c.b, c.b_gen, cfg, pdsac_generator(seed))
     return T[0].double().numpy()
 
 
@@ -147,45 +167,54 @@ def pose_solvers(settings: RansacSettings = RansacSettings()) -> dict[str, Solve
     }
 
 
-def generate(
-    registrar: Registrar, source: np.ndarray, target: np.ndarray
-) -> tuple[Correspondences, np.ndarray, float, float]:
-    """One network pass on the pair as `Registrar.register` prepares it (no initial guess, one pass).
-
-    Returns (correspondences, offset, scale, network seconds); x_normalised = (x - offset) / scale.
-    """
-    cfg = registrar.config
-    src, _ = validate_cloud(source, "source", cfg.min_points)
-    tgt, _ = validate_cloud(target, "target", cfg.min_points)
-    rng = np.random.default_rng(cfg.seed)
-    offset, scale = unit_box_normalization(src)
-    n = registrar.num_points
-    a = torch.from_numpy(((subsample(src, n, rng) - offset) / scale).astype(np.float32))[None]
-    b = torch.from_numpy(((subsample(tgt, n, rng) - offset) / scale).astype(np.float32))[None]
+def generate(registrar: Registrar, source: np.ndarray, target: np.ndarray) -> Generated:
+    """The pair prepared as `Registrar.register` prepares it (no initial guess), then `Registrar.estimate`."""
+    p = registrar.prepare(source, target)
+    device = registrar.config.device
+    a, b = torch.from_numpy(p.a)[None].to(device), torch.from_numpy(p.b)[None].to(device)
+    timings: dict[str, float] = {}
     t0 = time.perf_counter()
     with torch.no_grad():
-        out = registrar.model(a.to(cfg.device), b.to(cfg.device))
+        est = registrar.estimate(a, b, pdsac_generator(registrar.config.seed), timings)
     seconds = time.perf_counter() - t0
-    c = Correspondences(a, out.source_generated.cpu(), b, out.target_generated.cpu())
-    return c, offset, scale, seconds
+    c = Correspondences(a.cpu(), est.source_generated.cpu(), b.cpu(), est.target_generated.cpu())
+    return Generated(c, p, est.transform[0].double().cpu().numpy(), timings["network"], seconds)
 
 
-def pair_truth(item: dict[str, Any], index: int, options: BenchOptions) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
-    """(T_gt float64, source CD subset, target CD subset, CD at the true pose): the CD points of
-    `suites.run_dataset` for this pair, so that the CDs compare across tables."""
-    src, tgt = item["source"].astype(np.float64), item["target"].astype(np.float64)
-    T_gt = np.asarray(item["transform"], dtype=np.float64)
-    rng = np.random.default_rng((options.seed, index))
-    src_cd, tgt_cd = _cd_subset(src, options.cd_points, rng), _cd_subset(tgt, options.cd_points, rng)
-    return T_gt, src_cd, tgt_cd, chamfer_distance(apply_transform(T_gt, src_cd), tgt_cd)
+def normalized_transform(T: np.ndarray, p: PreparedPair) -> np.ndarray:
+    """A dataset-units target_from_source in the normalised frame of `p` (inverse of `to_input_units`):
+    S T init^-1 S^-1 with the similarity S x = (x - offset) / scale."""
+    S = np.diag([1.0 / p.scale] * 3 + [1.0])
+    S[:3, 3] = -np.asarray(p.offset) / p.scale
+    return S @ T @ np.linalg.inv(p.init) @ np.linalg.inv(S)
 
 
-def generation_errors(c: Correspondences, T_gt: np.ndarray, offset: np.ndarray, scale: float) -> tuple[float, float]:
-    """(Chamfer distance, mean squared point error) between A_g and T_gt A, dataset units."""
-    a = c.a[0].double().numpy() * scale + offset
-    a_gen = c.a_gen[0].double().numpy() * scale + offset
+def generation_errors(
+    c: Correspondences, T_gt: np.ndarray, to_input_units: Callable[[np.ndarray], np.ndarray]
+) -> tuple[float, float]:
+    """(Chamfer distance, mean squared point error) between A_g and T_gt A, dataset units
+    (`to_input_units`: normalised points to dataset units, e.g. `PreparedPair.points_to_input_units`)."""
+    a = to_input_units(c.a[0].double().numpy())
+    a_gen = to_input_units(c.a_gen[0].double().numpy())
     truth = apply_transform(T_gt, a)
     return chamfer_distance(a_gen, truth), float(np.mean(np.sum((a_gen - truth) ** 2, axis=1)))
+
+
+def backbone_method(registrar: Registrar) -> Callable[[np.ndarray, np.ndarray], MethodOutput]:
+    """A backbone row as a benchmark method: `generate`, its estimate in dataset units (details: the
+    `Generated`, for the generation errors)."""
+    def run(source: np.ndarray, target: np.ndarray) -> MethodOutput:
+        g = generate(registrar, source, target)
+        return MethodOutput(g.prepared.to_input_units(g.transform_n), g.seconds,
+                            {"network_seconds": g.network_seconds}, details=g)
+
+    return run
+
+
+def generation_fields(out: MethodOutput, truth: PairTruth) -> dict[str, Any]:
+    g: Generated = out.details
+    gen_cd, gen_mse = generation_errors(g.correspondences, truth.transform, g.prepared.points_to_input_units)
+    return {"gen_cd": gen_cd, "gen_mse": gen_mse}
 
 
 def run_backbone_dataset(
@@ -193,33 +222,12 @@ def run_backbone_dataset(
     options: BenchOptions, progress: tqdm | None = None,
 ) -> tuple[list[dict[str, Any]], dict[str, list[float]]]:
     """Records (one per pair and backbone: dataset, pair, method = backbone name, re_deg, te, cd, seconds,
-    network_seconds, success, gen_cd, gen_mse, or error) and the per-pair list cd_floor."""
+    success, network_seconds, gen_cd, gen_mse, or error) and the per-pair list cd_floor."""
+    methods = {name: backbone_method(r) for name, r in registrars.items()}
     first = pairs[indices[0]]
-    for registrar in registrars.values():  # first-call costs stay out of the timings
-        warm, *_ = generate(registrar, first["source"], first["target"])
-        solve_pdsac(warm, registrar.config.pdsac, registrar.config.seed)
-    records: list[dict[str, Any]] = []
-    floors: list[float] = []
-    for i in indices:
-        item = pairs[i]
-        T_gt, src_cd, tgt_cd, floor = pair_truth(item, i, options)
-        floors.append(floor)
-        for name, registrar in registrars.items():
-            rec: dict[str, Any] = {"dataset": spec.name, "pair": int(i), "method": name}
-            try:
-                c, offset, scale, net_seconds = generate(registrar, item["source"], item["target"])
-                t0 = time.perf_counter()
-                T_n = solve_pdsac(c, registrar.config.pdsac, registrar.config.seed)
-                seconds = net_seconds + time.perf_counter() - t0
-                re, te, cd = evaluate(denormalize_transform(T_n, offset, scale), T_gt, src_cd, tgt_cd)
-                gen_cd, gen_mse = generation_errors(c, T_gt, offset, scale)
-                rec.update(re_deg=re, te=te, cd=cd, seconds=seconds, network_seconds=net_seconds,
-                           success=spec.success(re, te), gen_cd=gen_cd, gen_mse=gen_mse)
-            except Exception as exc:  # noqa: BLE001 - one model failing on one pair is a failure, not a crash
-                rec.update(failure_fields(exc))
-            records.append(rec)
-        if progress is not None:
-            progress.update(1)
+    for method in methods.values():  # first-call costs stay out of the timings
+        method(first["source"], first["target"])
+    records, floors = run_dataset(spec, pairs, indices, methods, options, progress, measure=generation_fields)
     return records, {"cd_floor": floors}
 
 
@@ -240,20 +248,21 @@ def run_pose_solver_dataset(
     gt_inlier_ratio: the same share at the true pose (how good the generated correspondences are).
     """
     cfg = registrar.config
-    warm, *_ = generate(registrar, pairs[indices[0]]["source"], pairs[indices[0]]["target"])
+    warm = generate(registrar, pairs[indices[0]]["source"], pairs[indices[0]]["target"]).correspondences
     for solve in solvers.values():  # first-call costs (allocations, thread pools) stay out of the timings
         solve(warm, cfg.pdsac, cfg.seed)
+    threshold = cfg.pdsac.inlier_threshold
     records: list[dict[str, Any]] = []
     per_pair: dict[str, list[float]] = {"cd_floor": [], "gt_inlier_ratio": [], "network_seconds": []}
     for i in indices:
         item = pairs[i]
-        T_gt, src_cd, tgt_cd, floor = pair_truth(item, i, options)
-        per_pair["cd_floor"].append(floor)
+        truth = pair_truth(item, i, options)
+        per_pair["cd_floor"].append(truth.cd_floor)
         try:
-            c, offset, scale, net_seconds = generate(registrar, item["source"], item["target"])
-            T_gt_n = T_gt.copy()  # the true pose in normalised units (inverse of `denormalize_transform`)
-            T_gt_n[:3, 3] = (T_gt[:3, 3] + T_gt[:3, :3] @ offset - offset) / scale
-            gt_inliers = union_inlier_ratio(T_gt_n, c, cfg.pdsac.inlier_threshold)
+            g = generate(registrar, item["source"], item["target"])
+            net_seconds = g.network_seconds
+            gt_inliers = union_inlier_ratio(normalized_transform(truth.transform, g.prepared), g.correspondences,
+                                            threshold)
         except Exception as exc:  # noqa: BLE001 - an unusable pair fails every solver, not the run
             failed, net_seconds, gt_inliers = f"{type(exc).__name__}: {exc}", float("nan"), float("nan")
         else:
@@ -266,11 +275,10 @@ def run_pose_solver_dataset(
                 if failed:
                     raise RuntimeError(f"no correspondences: {failed}")
                 t0 = time.perf_counter()
-                T_n = solve(c, cfg.pdsac, cfg.seed)
+                T_n = solve(g.correspondences, cfg.pdsac, cfg.seed)
                 seconds = time.perf_counter() - t0
-                re, te, cd = evaluate(denormalize_transform(T_n, offset, scale), T_gt, src_cd, tgt_cd)
-                rec.update(re_deg=re, te=te, cd=cd, seconds=seconds, success=spec.success(re, te),
-                           inlier_ratio=union_inlier_ratio(T_n, c, cfg.pdsac.inlier_threshold))
+                rec.update(scored_fields(spec, truth, g.prepared.to_input_units(T_n), seconds),
+                           inlier_ratio=union_inlier_ratio(T_n, g.correspondences, threshold))
             except Exception as exc:  # noqa: BLE001 - one solver failing on one pair is a failure, not a crash
                 rec.update(failure_fields(exc))
             records.append(rec)
@@ -282,7 +290,7 @@ def run_pose_solver_dataset(
 def pose_solver_description(cfg: RegistrationConfig, settings: RansacSettings, threads: int) -> str:
     p = cfg.pdsac
     return (
-        "The GenReg network runs once per pair (inputs resampled to the model's N and normalised as in the API); "
+        "The GenReg network runs once per pair (inputs prepared as in the API, `prepare_pair`); "
         "every solver estimates the pose from the same generated correspondences {A_i -> A_g,i} and "
         "{B_g,i -> B_i} (2N in all). "
         f"`pdsac`: the API's `pdsac_bidirectional` ({p.num_hypotheses} hypotheses of {p.sample_size} "
@@ -298,40 +306,29 @@ def pose_solver_description(cfg: RegistrationConfig, settings: RansacSettings, t
     )
 
 
-def backbone_description(cfg: RegistrationConfig, backbones: dict[str, str], threads: int) -> str:
+def describe_model(cfg: ModelConfig) -> str:
+    """What a backbone row's network is, from its checkpoint's ModelConfig."""
+    if cfg.architecture == "paper":
+        return ("the paper's generator (T-Net, xyz GCNN, mixer layers, global feature interaction, decoder; "
+                "`genreg_core.model.paper`)")
+    if cfg.backbone == "dgcnn":
+        return "point-pair-feature encoder + edge convolution + a linear layer, then the soft pointer"
+    return "point-pair-feature encoder + edge convolution + the paper's two mixer layers, then the soft pointer"
+
+
+def backbone_description(cfg: RegistrationConfig, models: dict[str, ModelConfig], backbones: dict[str, str],
+                         threads: int) -> str:
     p = cfg.pdsac
+    rows = "; ".join(f"`{name}` ({backbones[name]}): {describe_model(m)}" for name, m in models.items())
     return (
-        "Each row is a GenReg object model whose per-point encoder is the named backbone, trained with the same "
-        "recipe, data, seed and number of iterations (`scripts/ablation_backbone.sh`): `pointmixer` = PPF "
-        "encoder + edge convolution + the paper's two mixer layers (the shipped architecture); `dgcnn` = the "
-        "same without the mixer layers; `pointnet2` = PointNet++-style set abstraction (every point, then "
-        "N/4 farthest-point centres) and feature propagation on the same point-pair features. "
-        f"Checkpoints: {', '.join(f'`{n}` {c}' for n, c in backbones.items())}. "
-        f"Registration as the API's `genreg` method: network, then PDSAC ({p.num_hypotheses} hypotheses, "
-        f"seed {cfg.seed}). Generation: `gen CD` and `gen MSE` between A_g and T_gt A (the N network inputs). "
-        f"ms: network + PDSAC, median, batch 1, {threads} thread(s)."
+        f"Each row is a GenReg object model: {rows}. By default the rows are the shipped `modelnet40` and "
+        "`modelnet40_dgcnn` models, each with its own training run (MODEL_CARD.md); "
+        "`scripts/ablation_backbone.sh` retrains pointmixer and dgcnn with the same recipe, data, seed and "
+        "number of iterations and compares those. "
+        f"Registration as the API's `genreg` method: `Registrar.estimate`, network then PDSAC "
+        f"({p.num_hypotheses} hypotheses, seed {cfg.seed}). Generation: `gen CD` and `gen MSE` between A_g and "
+        f"T_gt A (the N network inputs). ms: network + PDSAC, median, batch 1, {threads} thread(s)."
     )
-
-
-def _load_registrars(checkpoints: dict[str, str], cfg: RegistrationConfig, what: str,
-                     skipped: list[str], log: Callable[[str], None]) -> dict[str, Registrar]:
-    """Registrars of the loadable checkpoints; each one that fails to load is skipped with a message."""
-    registrars: dict[str, Registrar] = {}
-    for name, checkpoint in checkpoints.items():
-        try:
-            registrars[name] = Registrar.from_checkpoint(checkpoint, cfg)
-        except CheckpointError as exc:
-            skipped.append(f"Ablation skipped {what} {name}: {exc}")
-            log(skipped[-1])
-    return registrars
-
-
-def _dataset_info(spec: DatasetSpec, pairs: Any, indices: Sequence[int], checkpoint: str, num_points: int) -> dict[str, Any]:
-    return {
-        "title": spec.title, "kind": spec.kind, "units": spec.units, "checkpoint": checkpoint,
-        "num_points": num_points, "success": asdict(spec.success), "pairs": len(indices),
-        "available_pairs": len(pairs), "indices": list(indices), "points_per_cloud": len(pairs[indices[0]]["source"]),
-    }
 
 
 def run_ablations(
@@ -357,18 +354,20 @@ def run_ablations(
     unknown = sorted(set(names) - set(ABLATIONS))
     if unknown:
         raise ValueError(f"unknown ablations {unknown}; known: {list(ABLATIONS)}")
-    suite_name, spec_suite, options = resolve_suite(suite, options)
+    suite_name, options, plan = plan_suite(suite, options, datasets, max_pairs)
     checkpoints = {**DEFAULT_CHECKPOINTS, **(checkpoints or {})}
     backbones = dict(backbones or DEFAULT_BACKBONES)
     load_start = os.getloadavg()[0]
-    names_ds = [n for n in spec_suite.counts if datasets is None or n in datasets]
-    plan = plan_pairs(spec_suite, names_ds, options, max_pairs)
     cfg = RegistrationConfig(seed=options.seed)
+
+    def load(checkpoint: str) -> Registrar:
+        return Registrar.from_checkpoint(checkpoint, cfg)
+
     skipped: list[str] = []
     sections: list[dict[str, Any]] = []
     if POSE_SOLVER in names:
         kinds = {kind: checkpoints[kind] for kind in sorted({spec.kind for spec, _, _ in plan})}
-        registrars = _load_registrars(kinds, cfg, "pose-solver on", skipped, log)
+        registrars = load_each(kinds, load, "Ablation skipped pose-solver on {name}: {error}", skipped, log)
         solvers = pose_solvers(ransac)
         section: dict[str, Any] = {
             "name": POSE_SOLVER, "title": POSE_SOLVER_TITLE, "column": "solver", "order": list(solvers),
@@ -384,18 +383,21 @@ def run_ablations(
             registrar = registrars[spec.kind]
             records, per_pair = run_pose_solver_dataset(spec, pairs, indices, registrar, options, solvers, bar)
             section["records"] += records
-            section["datasets"][spec.name] = {
-                **_dataset_info(spec, pairs, indices, checkpoints[spec.kind], registrar.num_points), **per_pair}
+            section["datasets"][spec.name] = dataset_info(spec, pairs, indices, checkpoints[spec.kind],
+                                                          num_points=registrar.num_points, **per_pair)
         bar.close()
         sections.append(section)
     if BACKBONE in names:
-        registrars = _load_registrars(backbones, cfg, "backbone", skipped, log)
+        registrars = load_each(backbones, load, "Ablation skipped backbone {name}: {error}", skipped, log)
+        models = {name: r.model.config for name, r in registrars.items()}
         section = {
             "name": BACKBONE, "title": BACKBONE_TITLE, "column": "backbone", "order": list(registrars),
             "extras": [{"key": "gen_cd", "header": "gen CD", "format": "f4"},
                        {"key": "gen_mse", "header": "gen MSE", "format": "f5"}],
-            "description": backbone_description(cfg, backbones, options.threads),
-            "settings": {"pdsac": asdict(cfg.pdsac), "seed": cfg.seed, "backbones": backbones},
+            "description": backbone_description(cfg, models, backbones, options.threads),
+            "settings": {"pdsac": asdict(cfg.pdsac), "seed": cfg.seed, "backbones": backbones,
+                         "models": {name: {"architecture": m.architecture, "backbone": m.backbone}
+                                    for name, m in models.items()}},
             "datasets": {}, "records": [],
         }
         runnable = [(s, p, ix) for s, p, ix in plan if s.kind == OBJECT] if registrars else []
@@ -405,8 +407,8 @@ def run_ablations(
             records, per_pair = run_backbone_dataset(spec, pairs, indices, registrars, options, bar)
             section["records"] += records
             num_points = next(iter(registrars.values())).num_points
-            section["datasets"][spec.name] = {
-                **_dataset_info(spec, pairs, indices, "see the rows", num_points), **per_pair}
+            section["datasets"][spec.name] = dataset_info(spec, pairs, indices, "see the rows",
+                                                          num_points=num_points, **per_pair)
         bar.close()
         sections.append(section)
     meta = run_meta(suite_name, options, [], checkpoints, load_start)

@@ -1,5 +1,8 @@
 """Classical registration baselines (Open3D, small_gicp), configured as a skilled user would.
 
+ICP, downsampling and normals are the core's (`genreg_core.refine.icp`, the one ICP wrapper); FPFH,
+RANSAC, FGR and small_gicp live here.
+
 Every method is a plain function `(source, target, params) -> (T, seconds)`:
 - source (N, 3) and target (M, 3) arrays in any units (unit box for objects, metres for scenes);
 - T is the 4x4 float64 target_from_source transform, column convention x_t = R x_s + t;
@@ -20,6 +23,8 @@ from dataclasses import dataclass
 import numpy as np
 import open3d as o3d
 import small_gicp
+
+from genreg_core.refine import downsample, estimate_normals, icp, o3d_cloud
 
 reg = o3d.pipelines.registration
 
@@ -68,42 +73,17 @@ class BaselineParams:
 BaselineFn = Callable[[np.ndarray, np.ndarray, BaselineParams], tuple[np.ndarray, float]]
 
 
-def to_o3d(points: np.ndarray) -> o3d.geometry.PointCloud:
-    return o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.asarray(points, dtype=np.float64)))
-
-
-def _downsample(cloud: o3d.geometry.PointCloud, voxel: float) -> o3d.geometry.PointCloud:
-    return cloud.voxel_down_sample(voxel) if voxel > 0 else cloud
-
-
-def _with_normals(cloud: o3d.geometry.PointCloud, radius: float) -> o3d.geometry.PointCloud:
-    cloud.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=radius, max_nn=30))
-    return cloud
-
-
-def _icp(
-    source: o3d.geometry.PointCloud, target: o3d.geometry.PointCloud, init: np.ndarray,
-    max_distance: float, iterations: int, point_to_plane: bool = False,
-) -> np.ndarray:
-    estimation = reg.TransformationEstimationPointToPlane() if point_to_plane else \
-        reg.TransformationEstimationPointToPoint()
-    result = reg.registration_icp(
-        source, target, max_distance, init, estimation, reg.ICPConvergenceCriteria(max_iteration=iterations)
-    )
-    return np.asarray(result.transformation).copy()
-
-
-def _fpfh(
-    points: np.ndarray, p: BaselineParams
-) -> tuple[o3d.geometry.PointCloud, o3d.pipelines.registration.Feature]:
-    cloud = _with_normals(_downsample(to_o3d(points), p.feature_voxel_size), p.normal_radius)
+def fpfh(points: np.ndarray, p: BaselineParams) -> tuple[o3d.geometry.PointCloud, reg.Feature]:
+    """The downsampled cloud (radius normals) and its FPFH features."""
+    cloud = estimate_normals(downsample(o3d_cloud(points), p.feature_voxel_size), p.normal_radius)
     feature = reg.compute_fpfh_feature(cloud, o3d.geometry.KDTreeSearchParamHybrid(radius=p.fpfh_radius, max_nn=100))
     return cloud, feature
 
 
-def _ransac(source: np.ndarray, target: np.ndarray, p: BaselineParams) -> np.ndarray:
-    src, src_f = _fpfh(source, p)
-    tgt, tgt_f = _fpfh(target, p)
+def ransac(source: np.ndarray, target: np.ndarray, p: BaselineParams) -> np.ndarray:
+    """FPFH + Open3D feature RANSAC: the 4x4 target_from_source it finds."""
+    src, src_f = fpfh(source, p)
+    tgt, tgt_f = fpfh(target, p)
     distance = p.ransac_distance
     o3d.utility.random.seed(p.seed)
     result = reg.registration_ransac_based_on_feature_matching(
@@ -117,25 +97,24 @@ def _ransac(source: np.ndarray, target: np.ndarray, p: BaselineParams) -> np.nda
 def icp_point_to_point(source: np.ndarray, target: np.ndarray, p: BaselineParams) -> tuple[np.ndarray, float]:
     """Open3D point-to-point ICP from identity, cut-off `icp_max_distance`."""
     t0 = time.perf_counter()
-    src, tgt = _downsample(to_o3d(source), p.icp_voxel_size), _downsample(to_o3d(target), p.icp_voxel_size)
-    T = _icp(src, tgt, np.eye(4), p.icp_max_distance, p.icp_max_iterations)
+    T = icp(source, target, method="point_to_point", max_distance=p.icp_max_distance,
+            max_iterations=p.icp_max_iterations, voxel_size=p.icp_voxel_size)
     return T, time.perf_counter() - t0
 
 
 def icp_point_to_plane(source: np.ndarray, target: np.ndarray, p: BaselineParams) -> tuple[np.ndarray, float]:
     """Open3D point-to-plane ICP from identity; target normals from a radius search (normal_radius)."""
     t0 = time.perf_counter()
-    src = _downsample(to_o3d(source), p.icp_voxel_size)
-    tgt = _with_normals(_downsample(to_o3d(target), p.icp_voxel_size), p.normal_radius)
-    T = _icp(src, tgt, np.eye(4), p.icp_max_distance, p.icp_max_iterations, point_to_plane=True)
+    T = icp(source, target, method="point_to_plane", max_distance=p.icp_max_distance,
+            max_iterations=p.icp_max_iterations, voxel_size=p.icp_voxel_size, normal_radius=p.normal_radius)
     return T, time.perf_counter() - t0
 
 
 def fpfh_fgr(source: np.ndarray, target: np.ndarray, p: BaselineParams) -> tuple[np.ndarray, float]:
     """FPFH features on voxel-downsampled clouds, then Open3D Fast Global Registration (absolute scale)."""
     t0 = time.perf_counter()
-    src, src_f = _fpfh(source, p)
-    tgt, tgt_f = _fpfh(target, p)
+    src, src_f = fpfh(source, p)
+    tgt, tgt_f = fpfh(target, p)
     option = reg.FastGlobalRegistrationOption(
         use_absolute_scale=True, decrease_mu=True, maximum_correspondence_distance=p.fgr_distance
     )
@@ -146,16 +125,15 @@ def fpfh_fgr(source: np.ndarray, target: np.ndarray, p: BaselineParams) -> tuple
 def fpfh_ransac(source: np.ndarray, target: np.ndarray, p: BaselineParams) -> tuple[np.ndarray, float]:
     """FPFH + Open3D RANSAC (mutual filter, 3-point samples, edge-length and distance checkers)."""
     t0 = time.perf_counter()
-    T = _ransac(source, target, p)
+    T = ransac(source, target, p)
     return T, time.perf_counter() - t0
 
 
 def fpfh_ransac_icp(source: np.ndarray, target: np.ndarray, p: BaselineParams) -> tuple[np.ndarray, float]:
     """FPFH + RANSAC, then point-to-point ICP on the ICP-resolution clouds (cut-off `refine_distance`)."""
     t0 = time.perf_counter()
-    T0 = _ransac(source, target, p)
-    src, tgt = _downsample(to_o3d(source), p.icp_voxel_size), _downsample(to_o3d(target), p.icp_voxel_size)
-    T = _icp(src, tgt, T0, p.refine_distance, p.icp_max_iterations)
+    T = icp(source, target, ransac(source, target, p), method="point_to_point", max_distance=p.refine_distance,
+            max_iterations=p.icp_max_iterations, voxel_size=p.icp_voxel_size)
     return T, time.perf_counter() - t0
 
 

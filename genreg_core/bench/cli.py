@@ -6,7 +6,9 @@
 
 --ablation runs issue 5's ablations on the suite's datasets instead of the method comparison
 (pose-solver: PDSAC against Open3D RANSAC on the same generated correspondences; backbone: GenReg
-models with different encoders, --backbones NAME=CHECKPOINT ..., on the object datasets).
+object models with different backbones on the object datasets: by default the shipped pointmixer
+`modelnet40` and dgcnn `modelnet40_dgcnn`, or --backbones NAME=CHECKPOINT ...; --paper-checkpoint adds
+a row for a checkpoint of the paper's own generator).
 Checkpoints: objects (ModelNet40) use --object-checkpoint (default: shipped "modelnet40"), scenes
 (7-Scenes, SUN3D) use --scene-checkpoint (default: shipped "7scenes"); --checkpoint sets both. A missing
 checkpoint skips the GenReg methods on those datasets with a message. Threads are fixed before torch
@@ -60,8 +62,10 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     p.add_argument("--ablation", nargs="+", choices=ABLATIONS,
                    help="run these ablations on the suite's datasets instead of the method comparison")
     p.add_argument("--backbones", nargs="+", metavar="NAME=CHECKPOINT",
-                   help="backbone ablation rows (default: pointmixer, dgcnn, pointnet2 from runs/abl_<name>/last.pt, "
-                        "as scripts/ablation_backbone.sh trains them)")
+                   help="backbone ablation rows (default: pointmixer=modelnet40 dgcnn=modelnet40_dgcnn, the shipped "
+                        "models; scripts/ablation_backbone.sh passes its retrained runs/abl_<name>/last.pt)")
+    p.add_argument("--paper-checkpoint", metavar="CHECKPOINT",
+                   help="backbone ablation: add a row 'paper' for this checkpoint of the paper's generator")
     args = p.parse_args(argv)
     if args.backbones and any("=" not in b for b in args.backbones):
         p.error("--backbones takes NAME=CHECKPOINT pairs")
@@ -74,15 +78,10 @@ def main(argv: list[str] | None = None) -> int:
     import open3d as o3d
 
     o3d.utility.set_verbosity_level(o3d.utility.VerbosityLevel.Error)  # RANSAC's mutual-filter notes
+    from genreg_core.bench.datasets import DATASETS, OBJECT, SCENE, BenchOptions
+    from genreg_core.bench.methods import DEFAULT_CHECKPOINTS
     from genreg_core.bench.report import load_run, write_report
-    from genreg_core.bench.suites import (
-        DATASETS,
-        DEFAULT_CHECKPOINTS,
-        OBJECT,
-        SCENE,
-        BenchOptions,
-        run_benchmark,
-    )
+    from genreg_core.bench.runner import run_benchmark
 
     if args.datasets and set(args.datasets) - set(DATASETS):
         print(f"unknown datasets {sorted(set(args.datasets) - set(DATASETS))}; known: {list(DATASETS)}",
@@ -104,9 +103,11 @@ def main(argv: list[str] | None = None) -> int:
 
     try:
         if args.ablation:
-            from genreg_core.bench.ablation import run_ablations
+            from genreg_core.bench.ablation import DEFAULT_BACKBONES, run_ablations
 
-            backbones = dict(b.split("=", 1) for b in args.backbones) if args.backbones else None
+            backbones = dict(b.split("=", 1) for b in args.backbones) if args.backbones else dict(DEFAULT_BACKBONES)
+            if args.paper_checkpoint:
+                backbones["paper"] = args.paper_checkpoint
             run = run_ablations(args.suite, checkpoints, options, args.ablation, args.datasets, args.max_pairs,
                                 progress=not args.no_progress, log=log, backbones=backbones)
         else:

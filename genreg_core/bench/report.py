@@ -1,6 +1,6 @@
 """Benchmark report: per-dataset tables, GenReg confidence analysis, JSON with every pair, PNG plots.
 
-Inputs are the JSON-ready records of `suites.run_benchmark` (one per pair and method, RE in degrees, TE
+Inputs are the JSON-ready records of `runner.run_benchmark` (one per pair and method, RE in degrees, TE
 and CD in the dataset's units, seconds of wall time) and the sections of `ablation.run_ablations` (same
 record fields, one table per dataset). Statistics skip NaN (a method that raised); such pairs count as
 failures in the success rate and are listed in the `errors` column.
@@ -17,7 +17,8 @@ from typing import Any
 import numpy as np
 from scipy.stats import mannwhitneyu
 
-from genreg_core.bench.suites import ALL_METHODS, GENREG_METHODS, BenchRun
+from genreg_core.bench.methods import ALL_METHODS, GENREG_METHODS
+from genreg_core.bench.runner import BenchRun
 
 DEFAULT_CONFIDENCE_THRESHOLDS = (0.5, 0.9)
 # Figures the GenReg paper reports for a table of ours (as quoted in issue 6), shown under that table.
@@ -248,7 +249,7 @@ def markdown(run: BenchRun, thresholds: Sequence[float] = DEFAULT_CONFIDENCE_THR
                         f"TE {p['te']} (its own sampling of the meshes, other N).")]
     if run.throughput:
         out += ["", "## GenReg latency (batch 1) and batched throughput", "",
-                ("Network + PDSAC only (`pdsac.register_batch`, as in the API), inputs resampled to the model's N; "
+                ("Network + PDSAC only (`Registrar.estimate`, the API's stage), inputs prepared as in the API; "
                 "end-to-end batch-1 times are the ms/pair of the tables above."), "",
                 "| datasets | checkpoint | N | batch-1 ms | batch | ms/pair batched | speed-up |",
                 "|---|---|---|---|---|---|---|"]

@@ -1,0 +1,141 @@
+"""Benchmark methods: GenReg (through the registration API) and the classical baselines as one callable.
+
+A `Method` maps (source, target) arrays to a `MethodOutput`: the 4x4 target_from_source estimate, its wall
+time (the method's own preprocessing included) and JSON-ready details (GenReg: confidence, fitness, inlier
+ratio and stage timings of `RegistrationResult`). GenReg methods load one checkpoint per dataset kind
+("object", "scene"); `load_each` skips a checkpoint that does not load, with a message.
+`measure_throughput` times the network + PDSAC stage (`Registrar.estimate`) at batch 1 and batched.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from typing import Any, TypeVar
+
+import numpy as np
+import torch
+
+from genreg_core.bench.baselines import BASELINES, BaselineFn, BaselineParams, identity
+from genreg_core.bench.datasets import OBJECT, SCENE
+from genreg_core.config import RefineConfig, RegistrationConfig
+from genreg_core.errors import CheckpointError
+from genreg_core.registration import Registrar
+
+DEFAULT_CHECKPOINTS = {OBJECT: "modelnet40", SCENE: "7scenes"}
+GENREG_METHODS = ("genreg", "genreg+icp")
+REFERENCE_METHODS = ("identity",)
+ALL_METHODS = (*REFERENCE_METHODS, *GENREG_METHODS, *BASELINES)
+
+Loaded = TypeVar("Loaded")
+
+
+@dataclass
+class MethodOutput:
+    """transformation: 4x4 target_from_source; seconds: wall time; extra: JSON-ready method details;
+    details: anything else a caller measures (not stored)."""
+
+    transformation: np.ndarray
+    seconds: float
+    extra: dict[str, Any] = field(default_factory=dict)
+    details: Any = None
+
+
+Method = Callable[[np.ndarray, np.ndarray], MethodOutput]
+
+
+def baseline_method(fn: BaselineFn, params: BaselineParams) -> Method:
+    def run(source: np.ndarray, target: np.ndarray) -> MethodOutput:
+        T, seconds = fn(source, target, params)
+        return MethodOutput(T, seconds)
+
+    return run
+
+
+def genreg_method(registrar: Registrar) -> Method:
+    def run(source: np.ndarray, target: np.ndarray) -> MethodOutput:
+        t0 = time.perf_counter()
+        result = registrar.register(source, target)
+        seconds = time.perf_counter() - t0
+        extra = {
+            "confidence": result.confidence, "fitness": result.fitness, "inlier_ratio": result.inlier_ratio,
+            "timings": {k: float(v) for k, v in result.timings.items()},
+        }
+        return MethodOutput(result.transformation, seconds, extra)
+
+    return run
+
+
+def load_genreg(checkpoint: str, seed: int) -> dict[str, Registrar]:
+    """'genreg' (network + PDSAC) and 'genreg+icp' (the API's point-to-point refinement, default guard) on
+    one model."""
+    plain = Registrar.from_checkpoint(checkpoint, RegistrationConfig(seed=seed))
+    refine = RegistrationConfig(seed=seed, refine=RefineConfig(method="point_to_point"))
+    return {"genreg": plain, "genreg+icp": Registrar(plain.model, refine)}
+
+
+def load_each(
+    checkpoints: dict[str, str], load: Callable[[str], Loaded], message: str, skipped: list[str],
+    log: Callable[[str], None],
+) -> dict[str, Loaded]:
+    """{name: load(checkpoint)} of the checkpoints that load; each CheckpointError is skipped with
+    `message.format(name=name, error=exc)`, appended to `skipped` and logged."""
+    loaded: dict[str, Loaded] = {}
+    for name, checkpoint in checkpoints.items():
+        try:
+            loaded[name] = load(checkpoint)
+        except CheckpointError as exc:
+            skipped.append(message.format(name=name, error=exc))
+            log(skipped[-1])
+    return loaded
+
+
+def method_table(
+    wanted: Sequence[str], params: BaselineParams, genreg: dict[str, Registrar] | None
+) -> dict[str, Method]:
+    """The wanted methods on one dataset, in order; GenReg methods only when its registrars loaded."""
+    table: dict[str, Method] = {}
+    for m in wanted:
+        if m == "identity":
+            table[m] = baseline_method(identity, params)
+        elif m in BASELINES:
+            table[m] = baseline_method(BASELINES[m], params)
+        elif genreg is not None:
+            table[m] = genreg_method(genreg[m])
+    return table
+
+
+def pdsac_generator(seed: int | None) -> torch.Generator | None:
+    """A PDSAC generator seeded as `Registrar.register` seeds its own from `config.seed` (None: fresh
+    randomness)."""
+    return torch.Generator().manual_seed(seed) if seed is not None else None
+
+
+def measure_throughput(
+    registrar: Registrar, pairs: Any, indices: Sequence[int], batch: int, repeats: int = 3
+) -> dict[str, Any]:
+    """Network + PDSAC only (`Registrar.estimate`, the API's own stage), ms per pair: batch 1 vs `batch`.
+
+    Inputs are prepared like the API (`Registrar.prepare`) and cycled to fill the batch; the median of
+    `repeats` runs is reported.
+    """
+    items = [pairs[indices[k % len(indices)]] for k in range(batch)]
+    prepared = [registrar.prepare(item["source"], item["target"]) for item in items]
+    device = registrar.config.device
+    a = torch.from_numpy(np.stack([p.a for p in prepared])).to(device)
+    b = torch.from_numpy(np.stack([p.b for p in prepared])).to(device)
+
+    def once(x: torch.Tensor, y: torch.Tensor) -> float:
+        gen = pdsac_generator(0)
+        t0 = time.perf_counter()
+        with torch.no_grad():
+            registrar.estimate(x, y, gen)
+        return time.perf_counter() - t0
+
+    once(a[:1], b[:1])  # warm-up, both shapes
+    once(a, b)
+    single = [once(a[k:k + 1], b[k:k + 1]) for k in range(min(batch, 8)) for _ in range(repeats)]
+    batched = [once(a, b) / batch for _ in range(repeats)]
+    return {"num_points": registrar.num_points, "batch": batch, "ms_batch1": 1e3 * float(np.median(single)),
+            "ms_per_pair_batched": 1e3 * float(np.median(batched))}

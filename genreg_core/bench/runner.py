@@ -1,0 +1,185 @@
+"""Benchmark runner: registers the same selected pairs of every dataset with every method, and records it.
+
+A run registers the pairs of `datasets.plan_pairs` with the `methods` tables, in one process with one
+thread setting, and records per pair and method:
+- RE: rotation error in degrees (angle of R_est R_gt^T); TE: |t_est - t_gt| in the dataset's units;
+- CD: Chamfer distance (metrics.chamfer_distance) between the moved source and the target, on at most
+  `cd_points` random points per cloud (the same points for every method, `datasets.pair_truth`); the CD
+  at the true pose is stored per pair as the floor;
+- seconds: wall time of one batch-1 registration including each method's own preprocessing;
+- success: RE and TE below the dataset's thresholds (`datasets.Success`);
+- GenReg only: confidence, fitness, inlier ratio and stage timings of `RegistrationResult`.
+Transforms are 4x4 target_from_source (x_t = R x_s + t). A missing GenReg checkpoint skips its methods
+with a message. Ablations are separate sections of a run (`BenchRun.ablations`, module `ablation`); they
+reuse the pair plan, `run_dataset` and `report.summarize`. `run_meta` records the machine and threads.
+"""
+
+from __future__ import annotations
+
+import os
+import platform
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import asdict, dataclass, field
+from typing import Any
+
+import torch
+from tqdm import tqdm
+
+from genreg_core.bench.datasets import BenchOptions, DatasetSpec, PairTruth, Suite, pair_truth, plan_suite
+from genreg_core.bench.methods import (
+    ALL_METHODS,
+    DEFAULT_CHECKPOINTS,
+    GENREG_METHODS,
+    Method,
+    MethodOutput,
+    load_each,
+    load_genreg,
+    measure_throughput,
+    method_table,
+)
+
+Measure = Callable[[MethodOutput, PairTruth], dict[str, Any]]  # extra record fields from output and truth
+
+
+@dataclass
+class BenchRun:
+    """Everything a report needs; `records` holds one JSON-ready dict per (pair, method)."""
+
+    meta: dict[str, Any]
+    datasets: dict[str, dict[str, Any]]
+    records: list[dict[str, Any]]
+    throughput: list[dict[str, Any]]
+    skipped: list[str]
+    ablations: list[dict[str, Any]] = field(default_factory=list)  # JSON-ready sections (`ablation`)
+
+
+def failure_fields(exc: Exception) -> dict[str, Any]:
+    """Record fields of a registration that raised: NaN figures, no success, the error named."""
+    nan = float("nan")
+    return {"re_deg": nan, "te": nan, "cd": nan, "seconds": nan, "success": False,
+            "error": f"{type(exc).__name__}: {exc}"}
+
+
+def scored_fields(spec: DatasetSpec, truth: PairTruth, T: Any, seconds: float) -> dict[str, Any]:
+    """Record fields of one estimate: re_deg, te, cd, seconds, success."""
+    re, te, cd = truth.errors(T)
+    return {"re_deg": re, "te": te, "cd": cd, "seconds": seconds, "success": spec.success(re, te)}
+
+
+def run_dataset(
+    spec: DatasetSpec, pairs: Any, indices: Sequence[int], methods: dict[str, Method], options: BenchOptions,
+    progress: tqdm | None = None, measure: Measure | None = None,
+) -> tuple[list[dict[str, Any]], list[float]]:
+    """Register pairs[i] for i in indices with every method; returns (records, CD floor per pair).
+
+    `measure` adds record fields from each output and the pair's truth (the ablations' generation errors).
+    """
+    records, floors = [], []
+    for i in indices:
+        item = pairs[i]
+        truth = pair_truth(item, i, options)
+        floors.append(truth.cd_floor)
+        for name, method in methods.items():
+            rec: dict[str, Any] = {"dataset": spec.name, "pair": int(i), "method": name}
+            try:
+                out = method(item["source"], item["target"])
+                rec.update(scored_fields(spec, truth, out.transformation, out.seconds), **out.extra)
+                if measure is not None:
+                    rec.update(measure(out, truth))
+            except Exception as exc:  # noqa: BLE001 - one method failing on one pair is a failure, not a crash
+                rec.update(failure_fields(exc))
+            records.append(rec)
+        if progress is not None:
+            progress.update(1)
+    return records, floors
+
+
+def dataset_info(spec: DatasetSpec, pairs: Any, indices: Sequence[int], checkpoint: str, **extra: Any) -> dict[str, Any]:
+    """The `BenchRun.datasets` (or ablation section) entry of one dataset; `extra` adds fields."""
+    return {
+        "title": spec.title, "kind": spec.kind, "units": spec.units, "checkpoint": checkpoint,
+        "success": asdict(spec.success), "pairs": len(indices), "available_pairs": len(pairs),
+        "indices": list(indices), "points_per_cloud": len(pairs[indices[0]]["source"]), **extra,
+    }
+
+
+def run_benchmark(
+    suite: str | Suite,
+    checkpoints: dict[str, str] | None = None,
+    options: BenchOptions | None = None,
+    methods: Sequence[str] | None = None,
+    datasets: Sequence[str] | None = None,
+    max_pairs: int | None = None,
+    progress: bool = True,
+    log: Callable[[str], None] = print,
+) -> BenchRun:
+    """Run a suite ('smoke', 'quick', 'full' or a `Suite`); `checkpoints` maps kind -> name or path.
+
+    `methods` / `datasets` restrict the run; `max_pairs` caps the pairs per dataset.
+    """
+    wanted = list(methods or ALL_METHODS)
+    unknown = sorted(set(wanted) - set(ALL_METHODS))
+    if unknown:
+        raise ValueError(f"unknown methods {unknown}; known: {list(ALL_METHODS)}")
+    suite_name, options, plan = plan_suite(suite, options, datasets, max_pairs)
+    checkpoints = {**DEFAULT_CHECKPOINTS, **(checkpoints or {})}
+
+    load_start = os.getloadavg()
+    skipped: list[str] = []
+    genreg = {}
+    if any(m in GENREG_METHODS for m in wanted):
+        kinds = {kind: checkpoints[kind] for kind in sorted({spec.kind for spec, _, _ in plan})}
+        genreg = load_each(kinds, lambda c: load_genreg(c, options.seed), "GenReg skipped on {name} datasets: {error}",
+                           skipped, log)
+
+    records, infos, throughput = [], {}, []
+    warmed: set[tuple[str, str, bool]] = set()
+    bar = tqdm(total=sum(len(p[2]) for p in plan), unit="pair", disable=not progress)
+    for spec, pairs, indices in plan:
+        bar.set_description(spec.name)
+        params = spec.baseline_params(options.threads)
+        table = method_table(wanted, params, genreg.get(spec.kind))
+        warm = pairs[indices[0]]
+        for m, method in table.items():  # first-call costs (allocations, thread pools) stay out of the timings
+            if (m, spec.kind, spec.metric) not in warmed:
+                method(warm["source"], warm["target"])
+                warmed.add((m, spec.kind, spec.metric))
+        recs, floors = run_dataset(spec, pairs, indices, table, options, bar)
+        records += recs
+        infos[spec.name] = dataset_info(spec, pairs, indices, checkpoints[spec.kind], genreg=spec.kind in genreg,
+                                        cd_floor=floors, baseline_params=asdict(params))
+    bar.close()
+
+    for kind, regs in genreg.items():
+        first = next(((s, p, ix) for s, p, ix in plan if s.kind == kind), None)
+        if first is not None and "genreg" in wanted:
+            spec, pairs, indices = first
+            row = measure_throughput(regs["genreg"], pairs, indices, options.throughput_batch)
+            throughput.append({"kind": kind, "checkpoint": checkpoints[kind], "dataset": spec.name, **row})
+
+    meta = run_meta(suite_name, options, wanted, checkpoints, load_start[0])
+    return BenchRun(meta, infos, records, throughput, skipped)
+
+
+def run_meta(
+    suite_name: str, options: BenchOptions, methods: Sequence[str], checkpoints: dict[str, str], load_start: float
+) -> dict[str, Any]:
+    """The `BenchRun.meta` of a run: settings, threads, machine, date and the 1-minute load average."""
+    return {
+        "suite": suite_name, "options": asdict(options), "methods": list(methods), "checkpoints": checkpoints,
+        "threads": thread_report(options.threads),
+        "load_average": {"start": load_start, "end": os.getloadavg()[0]},  # 1-minute, other jobs included
+        "machine": {"cpu_count": os.cpu_count(), "platform": platform.platform(), "python": platform.python_version(),
+                    "torch": torch.__version__},
+        "date": time.strftime("%Y-%m-%d %H:%M:%S %Z"),
+    }
+
+
+def thread_report(threads: int) -> dict[str, Any]:
+    """The thread settings in force (torch intra-op, OpenMP env for Open3D, small_gicp workers)."""
+    return {
+        "requested": threads, "torch": torch.get_num_threads(),
+        "OMP_NUM_THREADS": os.environ.get("OMP_NUM_THREADS"), "OMP_WAIT_POLICY": os.environ.get("OMP_WAIT_POLICY"),
+        "small_gicp": threads,
+    }
