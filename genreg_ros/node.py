@@ -2,11 +2,11 @@
 
 Topics (relative names, remap them):
 - in  `source_cloud`, `target_cloud` (sensor_msgs/PointCloud2), paired by header stamp (see sync.py);
-- in  `initial_guess` (geometry_msgs/TransformStamped, target_from_source), overrides the parameter;
+- in  `initial_guess` (geometry_msgs/TransformStamped, T_target_source), overrides the parameter;
 - out `aligned_cloud` (PointCloud2): the source's finite points moved into the target frame, every other
   field kept; frame_id = target frame, stamp = source stamp;
 - out `transform` (TransformStamped): header.frame_id = target frame (parent), child_frame_id = source
-  frame, stamp = source stamp; x_target = R x_source + t (REP-103 metres, REP-105 parent/child);
+  frame, stamp = source stamp: T_target_source (conventions: `genreg_core.geometry`; REP-105 parent/child);
 - out `generated_cloud` (PointCloud2, if publish_generated): the network's generated source (A_g) in the
   target frame;
 - out `/diagnostics` (diagnostic_msgs/DiagnosticArray): latency, fitness, counts and their reasons.
@@ -15,6 +15,9 @@ Threads: subscription callbacks only check headers and pair stamps (O(1) in the 
 thread decodes, registers and publishes. A newer pair replaces an older waiting one, so latency stays one
 registration at most and memory is bounded by the sync queues. Bad input is a throttled warning plus a
 counted drop; the node carries on.
+
+Parameters: `genreg_ros.config` (the settings) and `genreg_ros.params` (their declaration and checks);
+counters and /diagnostics: `genreg_ros.diagnostics`; messages: `genreg_ros.pointcloud2`, `.conversions`.
 """
 
 from __future__ import annotations
@@ -23,27 +26,27 @@ import re
 import sys
 import threading
 import time
-from collections import Counter, deque
 from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 import rclpy
-from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import TransformStamped
 from rclpy.clock import Clock, ClockType
 from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rclpy.qos import QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
-from scipy.spatial.transform import Rotation
 from sensor_msgs.msg import PointCloud2
 from std_msgs.msg import Header
 
-from genreg_core.config import PDSACConfig, RefineConfig, RegistrationConfig
 from genreg_core.errors import GenRegError
 from genreg_core.preprocess import PreprocessConfig, preprocess
 from genreg_ros import params
+from genreg_ros.config import NodeConfig
+from genreg_ros.conversions import matrix_to_msg, msg_to_matrix, stamp_ns
+from genreg_ros.diagnostics import Stats, build_status
 from genreg_ros.pointcloud2 import (
     DecodedCloud,
     PointCloud2Error,
@@ -78,113 +81,6 @@ class _Cloud:
     received: float
 
 
-class Stats:
-    """Thread-safe counters and recent figures behind /diagnostics."""
-
-    def __init__(self) -> None:
-        self.lock = threading.Lock()
-        self.start = time.monotonic()
-        self.received: Counter[str] = Counter()
-        self.dropped: Counter[str] = Counter()
-        self.failed: Counter[str] = Counter()
-        self.registered = 0
-        self.low_confidence = 0  # registered and published, but below warn_confidence
-        self.paired = 0  # pairs formed by the sync; each is registered, failed, dropped or superseded
-        self.last_arrival: dict[str, float | None] = {SOURCE: None, TARGET: None}
-        self.latency = deque(maxlen=100)  # s, arrival of the pair's later cloud -> published
-        self.overhead = deque(maxlen=100)  # s, node work besides preprocessing and registration
-        self.callback = deque(maxlen=200)  # s, one cloud subscription callback (checks + pairing)
-        self.last: dict[str, float] = {}
-        self.history = deque(maxlen=100)  # figures of the last registered pairs (benchmarks read them)
-        self.last_outcome = ""  # "", "registered" or "failed: <reason>"
-
-    def arrived(self, topic: str, now: float) -> None:
-        with self.lock:
-            self.received[topic] += 1
-            self.last_arrival[topic] = now
-
-    def drop(self, reason: str) -> None:
-        with self.lock:
-            self.dropped[reason] += 1
-
-    def fail(self, reason: str) -> None:
-        with self.lock:
-            self.failed[reason] += 1
-            self.last_outcome = f"failed: {reason}"
-
-    def ok(self, latency: float, overhead: float, figures: dict[str, float], low_confidence: bool = False) -> None:
-        with self.lock:
-            self.registered += 1
-            self.low_confidence += int(low_confidence)
-            self.latency.append(latency)
-            self.overhead.append(overhead)
-            self.last = dict(figures)
-            self.history.append(self.last)
-            self.last_outcome = "registered with low confidence" if low_confidence else "registered"
-
-
-def matrix_to_msg(T: np.ndarray, header: Header, child_frame: str) -> TransformStamped:
-    """TransformStamped of T (parent = header.frame_id, child = child_frame, x_parent = R x_child + t)."""
-    msg = TransformStamped(header=header, child_frame_id=child_frame)
-    msg.transform.translation.x, msg.transform.translation.y, msg.transform.translation.z = map(float, T[:3, 3])
-    q = Rotation.from_matrix(T[:3, :3]).as_quat()  # x, y, z, w
-    r = msg.transform.rotation
-    r.x, r.y, r.z, r.w = map(float, q)
-    return msg
-
-
-def msg_to_matrix(msg: TransformStamped) -> np.ndarray:
-    """4x4 matrix of a TransformStamped (ValueError for a zero or non-finite quaternion)."""
-    tr, r = msg.transform.translation, msg.transform.rotation
-    q = np.array([r.x, r.y, r.z, r.w])
-    t = np.array([tr.x, tr.y, tr.z])
-    if not (np.isfinite(q).all() and np.isfinite(t).all()) or np.linalg.norm(q) < 1e-6:
-        raise ValueError("transform has a zero or non-finite quaternion or translation")
-    T = np.eye(4)
-    T[:3, :3] = Rotation.from_quat(q / np.linalg.norm(q)).as_matrix()
-    T[:3, 3] = t
-    return T
-
-
-def stamp_ns(header: Header) -> int:
-    return int(header.stamp.sec) * 1_000_000_000 + int(header.stamp.nanosec)
-
-
-def registration_config(values: dict[str, Any]) -> RegistrationConfig:
-    """The core's RegistrationConfig from the node's parameter values."""
-    return RegistrationConfig(
-        pdsac=PDSACConfig(
-            num_hypotheses=values["pdsac.num_hypotheses"],
-            sample_size=values["pdsac.sample_size"],
-            inlier_threshold=values["pdsac.inlier_threshold"],
-        ),
-        refine=RefineConfig(
-            method=values["refine.method"],
-            max_iterations=values["refine.max_iterations"],
-            max_correspondence_distance=values["refine.max_correspondence_distance"],
-            num_points=values["refine.num_points"],
-            guard_below=values["refine.guard_below"],
-            guard_distance=values["refine.guard_distance"],
-            guard_iterations=values["refine.guard_iterations"],
-        ),
-        passes=values["registration.passes"],
-        min_points=values["registration.min_points"],
-        seed=None if values["registration.seed"] < 0 else values["registration.seed"],
-        device=values["model.device"],
-    )
-
-
-def preprocess_config(values: dict[str, Any]) -> PreprocessConfig:
-    crop_min, crop_max = values["preprocess.crop_min"], values["preprocess.crop_max"]
-    return PreprocessConfig(
-        min_range=values["preprocess.min_range"],
-        max_range=values["preprocess.max_range"],
-        crop_min=tuple(crop_min) if crop_min else None,
-        crop_max=tuple(crop_max) if crop_max else None,
-        voxel_size=values["preprocess.voxel_size"],
-    )
-
-
 def _snake(name: str) -> str:
     return re.sub(r"(?<!^)(?=[A-Z])", "_", name.removesuffix("Error")).lower()
 
@@ -195,15 +91,15 @@ class RegisterNode(Node):
     def __init__(self, **node_kwargs: Any) -> None:
         super().__init__(NODE_NAME, **node_kwargs)
         try:
-            self._values = params.declare(self)
-            self._registrar = self._load_registrar(self._values)
-            self._tf_broadcaster = self._make_tf_broadcaster() if self._values["publish_tf"] else None
+            self._config = params.declare(self)
+            self._registrar = self._load_registrar(self._config)
+            self._tf_broadcaster = self._make_tf_broadcaster() if self._config.publish_tf else None
         except (params.ParamError, StartupError) as exc:
             self.destroy_node()
             raise StartupError(str(exc)) from None
-        v = self._values
+        c = self._config
         self._lock = threading.Lock()  # guards _sync
-        self._sync = PairSync(v["sync.slop"], v["sync.queue_size"], v["sync.mode"])
+        self._sync = PairSync(c.sync.slop, c.sync.queue_size, c.sync.mode)
         self._slot = LatestSlot()
         self._stats = Stats()
         self._warned: dict[str, float] = {}
@@ -212,10 +108,10 @@ class RegisterNode(Node):
         self._last_T: np.ndarray | None = None
         self._target_cache: tuple[PointCloud2, DecodedCloud, np.ndarray, PreprocessConfig] | None = None
 
-        sub_qos = QoSProfile(depth=v["qos.depth"], reliability=ReliabilityPolicy.RELIABLE)
-        if v["qos.reliability"] == "best_effort":
-            sub_qos = QoSProfile(**{**_qos_dict(qos_profile_sensor_data), "depth": v["qos.depth"]})
-        pub_qos = QoSProfile(depth=5, reliability=ReliabilityPolicy[v["qos.publisher_reliability"].upper()])
+        sub_qos = QoSProfile(depth=c.qos.depth, reliability=ReliabilityPolicy.RELIABLE)
+        if c.qos.reliability == "best_effort":
+            sub_qos = QoSProfile(**{**_qos_dict(qos_profile_sensor_data), "depth": c.qos.depth})
+        pub_qos = QoSProfile(depth=5, reliability=ReliabilityPolicy[c.qos.publisher_reliability.upper()])
         self._sub_source = self.create_subscription(
             PointCloud2, "source_cloud", lambda m: self._on_cloud(SOURCE, m), sub_qos)
         self._sub_target = self.create_subscription(
@@ -227,34 +123,46 @@ class RegisterNode(Node):
         self._pub_diag = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
         # A steady clock: diagnostics keep coming when sim time (use_sim_time) stalls.
         self._diag_timer = self.create_timer(
-            v["diagnostics.period"], self._publish_diagnostics, clock=Clock(clock_type=ClockType.STEADY_TIME))
-        self.add_on_set_parameters_callback(params.make_validator(lambda: self._values))
+            c.diagnostics.period, self._publish_diagnostics, clock=Clock(clock_type=ClockType.STEADY_TIME))
+        self.add_on_set_parameters_callback(params.make_validator(lambda: self._config))
         self.add_post_set_parameters_callback(self._on_params_set)
         self._worker = threading.Thread(target=self._work, name="genreg_worker", daemon=True)
         self._worker.start()
         self.get_logger().info(
-            f"ready: model {v['model.checkpoint']} (N={self._registrar.num_points}, {v['model.device']}), "
-            f"sync {v['sync.mode']} slop {v['sync.slop']} s, subscription QoS {v['qos.reliability']}; "
+            f"ready: model {c.model.checkpoint} (N={self._registrar.num_points}, {c.registration.device}), "
+            f"sync {c.sync.mode} slop {c.sync.slop} s, subscription QoS {c.qos.reliability}; "
             f"listening on {self._sub_source.topic_name} and {self._sub_target.topic_name}")
 
+    @property
+    def config(self) -> NodeConfig:
+        """The settings in force (replaced, never mutated, when parameters change)."""
+        return self._config
+
+    @property
+    def stats(self) -> Stats:
+        """The counters behind /diagnostics (benchmarks read `stats.history`)."""
+        return self._stats
+
+    @property
+    def registrar(self):
+        """The core's `Registrar` the node registers with."""
+        return self._registrar
+
     # ----------------------------------------------------------------- start-up
-    def _load_registrar(self, values: dict[str, Any]):
+    def _load_registrar(self, c: NodeConfig):
         from genreg_core.registration import Registrar
 
-        if values["model.num_threads"] > 0:
+        if c.model.num_threads > 0:
             import torch
 
-            torch.set_num_threads(values["model.num_threads"])
+            torch.set_num_threads(c.model.num_threads)
         try:
-            return Registrar.from_checkpoint(
-                values["model.checkpoint"],
-                config=registration_config(values),
-                num_points=values["model.num_points"] or None,
-            )
+            return Registrar.from_checkpoint(c.model.checkpoint, config=c.registration_config(),
+                                             num_points=c.model.num_points or None)
         except GenRegError as exc:
             raise StartupError(str(exc)) from None
         except (RuntimeError, AssertionError, OSError) as exc:  # e.g. a cuda device on a CPU-only torch
-            raise StartupError(f"cannot load model {values['model.checkpoint']!r}: {exc}") from None
+            raise StartupError(f"cannot load model {c.model.checkpoint!r}: {exc}") from None
 
     def _make_tf_broadcaster(self):
         try:
@@ -267,24 +175,20 @@ class RegisterNode(Node):
 
     # ----------------------------------------------------------------- parameters
     def _on_params_set(self, changed: list[Parameter]) -> None:
-        values = dict(self._values)
-        for p in changed:
-            if p.name in params.BY_NAME:
-                spec = params.BY_NAME[p.name]
-                values[p.name] = list(p.value or []) if spec.kind is params.DOUBLE_ARRAY else p.value
-        sync_changed = any(values[k] != self._values[k] for k in ("sync.slop", "sync.queue_size", "sync.mode"))
-        self._values = values  # replaced, never mutated: readers take one consistent snapshot
+        config = params.merged(self._config, changed)  # already validated by the on-set callback
+        sync_changed = config.sync != self._config.sync
+        self._config = config  # replaced, never mutated: readers take one consistent snapshot
         if sync_changed:
             with self._lock:
-                self._sync = PairSync(values["sync.slop"], values["sync.queue_size"], values["sync.mode"])
+                self._sync = PairSync(config.sync.slop, config.sync.queue_size, config.sync.mode)
 
     # ----------------------------------------------------------------- callbacks (short)
     def _on_cloud(self, topic: str, msg: PointCloud2) -> None:
         now = time.monotonic()
         self._stats.arrived(topic, now)
         try:
-            values = self._values
-            frame = values[f"{topic}_frame"] or msg.header.frame_id
+            c = self._config
+            frame = getattr(c, f"{topic}_frame") or msg.header.frame_id
             if not frame:
                 self._drop("empty_frame_id", f"{topic} cloud has an empty header.frame_id and {topic}_frame is unset")
                 return
@@ -294,8 +198,8 @@ class RegisterNode(Node):
                 self._drop(exc.reason, f"{topic} cloud: {exc}")
                 return
             num = int(msg.width) * int(msg.height)
-            if num > values["max_points"]:
-                self._drop("too_many_points", f"{topic} cloud has {num} points, max_points is {values['max_points']}")
+            if num > c.max_points:
+                self._drop("too_many_points", f"{topic} cloud has {num} points, max_points is {c.max_points}")
                 return
             stamp = stamp_ns(msg.header)
             with self._lock:
@@ -307,8 +211,7 @@ class RegisterNode(Node):
                 text = _DROP_TEXT.get(d.reason, d.reason).format(other=other, slop=slop)
                 self._drop(d.reason, f"{d.topic} cloud stamped {d.stamp / 1e9:.3f} s dropped: {text}")
             if pair is not None:
-                with self._stats.lock:
-                    self._stats.paired += 1
+                self._stats.pair_formed()
                 if self._slot.put(pair) is not None:
                     self._drop("superseded", f"pair dropped: {_DROP_TEXT['superseded']}")
         except Exception as exc:  # noqa: BLE001 (one bad message must never stop the node)
@@ -333,52 +236,51 @@ class RegisterNode(Node):
                 self._fail("internal_error", f"unexpected {type(exc).__name__}: {exc}")
 
     def _process(self, pair: Pair) -> None:
-        values = self._values
+        c = self._config
         src_cloud, tgt_cloud = pair.source, pair.target
         t0 = time.perf_counter()
-        pre = preprocess_config(values)
         try:
-            src = read_points(src_cloud.msg, values["max_points"])
+            src = read_points(src_cloud.msg, c.max_points)
         except PointCloud2Error as exc:
             self._drop(exc.reason, f"source cloud: {exc}")
             return
         t1 = time.perf_counter()
         try:
-            _, tgt_points, t_tgt = self._decode_target(tgt_cloud.msg, values["max_points"], pre)
+            tgt_points, t_tgt = self._decode_target(tgt_cloud.msg, c.max_points, c.preprocess)
         except PointCloud2Error as exc:
             self._drop(exc.reason, f"target cloud: {exc}")
             return
         t2 = time.perf_counter()
-        src_points = preprocess(src.points, pre)
-        if self._registrar.config != (cfg := registration_config(values)):
+        src_points = preprocess(src.points, c.preprocess)
+        if self._registrar.config != (cfg := c.registration_config()):
             self._registrar.config = cfg
         t3 = time.perf_counter()
         try:
-            result = self._registrar.register(src_points, tgt_points, initial_guess=self._initial_guess(values))
+            result = self._registrar.register(src_points, tgt_points, initial_guess=self._initial_guess(c))
         except GenRegError as exc:
             self._fail(_snake(type(exc).__name__), f"registration failed: {exc}")
             return
         t4 = time.perf_counter()
-        if result.fitness < values["min_fitness"]:
-            self._fail("low_fitness", f"fitness {result.fitness:.3f} < min_fitness {values['min_fitness']}")
+        if result.fitness < c.min_fitness:
+            self._fail("low_fitness", f"fitness {result.fitness:.3f} < min_fitness {c.min_fitness}")
             return
-        T = result.transformation
+        T_target_source = result.transformation
         header = Header(stamp=src_cloud.msg.header.stamp, frame_id=tgt_cloud.frame)
-        aligned = transform_cloud(header, src, T)
-        transform = matrix_to_msg(T, header, src_cloud.frame)
+        aligned = transform_cloud(header, src, T_target_source)
+        transform = matrix_to_msg(T_target_source, header, src_cloud.frame)
         t5 = time.perf_counter()
         self._pub_aligned.publish(aligned)
         self._pub_transform.publish(transform)
         if self._tf_broadcaster is not None:
             self._tf_broadcaster.sendTransform(transform)
-        if values["publish_generated"]:
+        if c.publish_generated:
             self._pub_generated.publish(xyz_to_msg(header, result.source_generated))
         t6 = time.perf_counter()
-        low_confidence = result.confidence < values["warn_confidence"]
+        low_confidence = result.confidence < c.warn_confidence
         if low_confidence:  # published, yet flagged: a user must not mistake it for a good result
             self._warn("low_confidence", f"published a low-confidence result: confidence {result.confidence:.2f} < "
-                       f"warn_confidence {values['warn_confidence']} (fitness {result.fitness:.2f})")
-        self._last_T = T  # the start of the next pair when use_last_result_as_guess is set
+                       f"warn_confidence {c.warn_confidence} (fitness {result.fitness:.2f})")
+        self._last_T = T_target_source  # the start of the next pair when use_last_result_as_guess is set
         latency = time.monotonic() - max(src_cloud.received, tgt_cloud.received)
         overhead = (t1 - t0) + t_tgt + (t6 - t4)
         self._stats.ok(latency, overhead, {
@@ -389,26 +291,25 @@ class RegisterNode(Node):
             "initial_guess_won": float(result.start == "initial_guess"),  # the refine guard replaced GenReg
         }, low_confidence)
 
-    def _decode_target(
-        self, msg: PointCloud2, max_points: int, pre: PreprocessConfig
-    ) -> tuple[DecodedCloud, np.ndarray, float]:
-        """Decoded and preprocessed target, cached while the same message is reused (latest_target)."""
+    def _decode_target(self, msg: PointCloud2, max_points: int, pre: PreprocessConfig) -> tuple[np.ndarray, float]:
+        """Preprocessed target points and the decoding time, cached while the same message is reused
+        (latest_target)."""
         cache = self._target_cache
         if cache is not None and cache[0] is msg and cache[3] == pre:
-            return cache[1], cache[2], 0.0
+            return cache[2], 0.0
         t0 = time.perf_counter()
         decoded = read_points(msg, max_points)
         t_decode = time.perf_counter() - t0
         points = preprocess(decoded.points, pre)
         self._target_cache = (msg, decoded, points, pre)
-        return decoded, points, t_decode
+        return points, t_decode
 
-    def _initial_guess(self, values: dict[str, Any]) -> np.ndarray | None:
+    def _initial_guess(self, c: NodeConfig) -> np.ndarray | None:
         if self._guess_topic is not None:
             return self._guess_topic
-        if values["use_last_result_as_guess"] and self._last_T is not None:
+        if c.use_last_result_as_guess and self._last_T is not None:
             return self._last_T
-        return params.guess_matrix(values["initial_guess"])
+        return c.initial_guess_matrix()
 
     # ----------------------------------------------------------------- drops, failures, diagnostics
     def _drop(self, reason: str, text: str) -> None:
@@ -426,59 +327,14 @@ class RegisterNode(Node):
             self.get_logger().warning(text)
 
     def _publish_diagnostics(self) -> None:
-        v, s = self._values, self._stats
-        now = time.monotonic()
-        with s.lock:
-            dropped, failed, received = Counter(s.dropped), Counter(s.failed), Counter(s.received)
-            registered, paired, last, outcome = s.registered, s.paired, dict(s.last), s.last_outcome
-            low_confidence = s.low_confidence
-            arrivals = dict(s.last_arrival)
-            latency = list(s.latency)
-            overhead = list(s.overhead)
-            callback = list(s.callback)
-        level, notes = DiagnosticStatus.OK, []
-        for topic in (SOURCE, TARGET):
-            silent = now - (arrivals[topic] or s.start)
-            if silent > v["diagnostics.stale_timeout"]:
-                level = DiagnosticStatus.WARN
-                what = "no" if arrivals[topic] is None else "no new"
-                notes.append(f"{what} {topic} cloud for {silent:.1f} s")
-                if topic not in self._stale:
-                    self._stale.add(topic)
-                    self.get_logger().warning(f"{notes[-1]} (topic {self._topic(topic)})")
-            else:
-                self._stale.discard(topic)
-        if outcome.startswith("failed"):
-            level = DiagnosticStatus.WARN
-            notes.append(f"last registration {outcome}")
-        elif outcome == "registered with low confidence":
-            level = DiagnosticStatus.WARN
-            notes.append(f"last registration has low confidence ({last.get('confidence', float('nan')):.2f} < "
-                         f"warn_confidence {v['warn_confidence']})")
-        summary = f"registered {registered}, dropped {sum(dropped.values())}, failed {sum(failed.values())}"
-        kv = {
-            "registered": registered,
-            "low_confidence": low_confidence,
-            "dropped": sum(dropped.values()),
-            "failed": sum(failed.values()),
-            "received.source": received[SOURCE],
-            "received.target": received[TARGET],
-            "paired": paired,
-            "latency_ms.last": 1e3 * latency[-1] if latency else float("nan"),
-            "latency_ms.median": 1e3 * float(np.median(latency)) if latency else float("nan"),
-            "overhead_ms.median": 1e3 * float(np.median(overhead)) if overhead else float("nan"),
-            "callback_ms.median": 1e3 * float(np.median(callback)) if callback else float("nan"),
-            **{f"dropped.{k}": n for k, n in sorted(dropped.items())},
-            **{f"failed.{k}": n for k, n in sorted(failed.items())},
-            **{f"last.{k}": x for k, x in last.items()},
-        }
-        status = DiagnosticStatus(
-            level=level,
-            name=f"{self.get_name()}: registration",
-            message="; ".join(notes + [summary]),
-            hardware_id=self.get_fully_qualified_name(),
-            values=[KeyValue(key=k, value=_fmt(x)) for k, x in kv.items()],
-        )
+        c = self._config
+        status, stale = build_status(self._stats.snapshot(), time.monotonic(), self.get_name(),
+                                     self.get_fully_qualified_name(), c.diagnostics.stale_timeout,
+                                     c.warn_confidence)
+        for topic, note in stale.items():
+            if topic not in self._stale:
+                self.get_logger().warning(f"{note} (topic {self._topic(topic)})")
+        self._stale = set(stale)
         self._pub_diag.publish(DiagnosticArray(header=Header(stamp=self.get_clock().now().to_msg()), status=[status]))
 
     def _topic(self, topic: str) -> str:
@@ -492,26 +348,11 @@ class RegisterNode(Node):
         self.destroy_node()
 
 
-def _fmt(x: Any) -> str:
-    return f"{x:.4g}" if isinstance(x, float) else str(x)
-
-
 def _qos_dict(profile: QoSProfile) -> dict[str, Any]:
     return {
         "history": profile.history, "depth": profile.depth, "reliability": profile.reliability,
         "durability": profile.durability,
     }
-
-
-def _node_fqn(argv: list[str]) -> str:
-    """The node's fully qualified name after `-r __ns:=...` / `-r __node:=...` remaps in argv."""
-    ns, name = "", NODE_NAME
-    for arg in argv:
-        if arg.startswith("__ns:="):
-            ns = "/" + arg.split(":=", 1)[1].strip("/")
-        elif arg.startswith("__node:="):
-            name = arg.split(":=", 1)[1]
-    return f"{ns.rstrip('/')}/{name}"
 
 
 def _error(text: str) -> int:
@@ -524,7 +365,7 @@ def main(argv: list[str] | None = None) -> int:
     argv = list(sys.argv if argv is None else argv)
     try:
         for path in params.params_files(argv):
-            params.check_params_file(path, _node_fqn(argv))
+            params.check_params_file(path, params.node_fqn(argv, NODE_NAME))
     except params.ParamError as exc:
         return _error(str(exc))
     try:

@@ -5,7 +5,10 @@ Conventions:
 - Any other fields (rgb, intensity, ring, ...) and `point_step` padding are carried byte for byte.
 - Both endiannesses are read and written; organised clouds (height > 1) and `row_step` padding are
   read row by row and flattened in row-major order (index = row * width + column).
-- Points with a NaN/Inf coordinate are dropped; `DecodedCloud.mask` says which ones were kept.
+- Points with a NaN/Inf coordinate are dropped (unless `finite_only=False`); `DecodedCloud.mask` says
+  which ones were kept.
+- rclpy messages and rosbags' deserialised messages (same field names, `data` a uint8 array) are both
+  read here: the node decodes live messages and `genreg_ros.bag.reader` bag messages with `read_points`.
 
 Speed: nothing here loops over points. `msg.data` is read with `np.frombuffer` (no copy) and written
 as one `array.array('B')` built with `frombytes` (one memcpy) and handed to the message without a
@@ -147,11 +150,12 @@ def _xyz_view(records: np.ndarray, layout: CloudLayout) -> list[np.ndarray]:
     return [np.ndarray((n,), dt, records, off, (step,)) for off, dt in zip(layout.xyz_offsets, layout.xyz_dtypes)]
 
 
-def read_points(msg: PointCloud2, max_points: int | None = None) -> DecodedCloud:
-    """Decode a PointCloud2: finite x, y, z plus the raw records of every point.
+def read_points(msg: PointCloud2, max_points: int | None = None, finite_only: bool = True) -> DecodedCloud:
+    """Decode a PointCloud2: finite x, y, z (every point with finite_only=False) plus the raw records of
+    every point.
 
     Raises PointCloud2Error with reason 'empty_cloud', 'missing_xyz', 'bad_xyz_type', 'bad_layout',
-    'truncated_data', 'too_many_points' or 'no_finite_points'.
+    'truncated_data', 'too_many_points' or (finite_only) 'no_finite_points'.
     """
     layout = parse_layout(msg)
     num = int(msg.width) * int(msg.height)
@@ -166,13 +170,26 @@ def read_points(msg: PointCloud2, max_points: int | None = None) -> DecodedCloud
         for i, view in enumerate(views):
             points[:, i] = view
     mask = None
-    finite = np.isfinite(points)
-    if not finite.all():  # a flat reduction is ~50x faster than .all(axis=1); this path is the rare one
+    finite = np.isfinite(points) if finite_only else True
+    if not np.all(finite):  # a flat reduction is ~50x faster than .all(axis=1); this path is the rare one
         mask = finite[:, 0] & finite[:, 1] & finite[:, 2]
         points = points.take(np.flatnonzero(mask), axis=0)  # ~20x faster than points[mask] on (n, 3)
         if len(points) == 0:
             raise PointCloud2Error("no_finite_points", f"all {num} points are NaN/Inf")
     return DecodedCloud(points=points, mask=mask, records=records, layout=layout, num_input=num)
+
+
+def unpack_rgb(cloud: DecodedCloud) -> np.ndarray | None:
+    """(K, 3) uint8 RGB of the kept points from a packed `rgb` (or `rgba`) UINT32/FLOAT32 field holding
+    0x00RRGGBB (PCL's layout), or None if the cloud has no such field."""
+    by_name = {f[0]: f for f in cloud.layout.fields}
+    name = "rgb" if "rgb" in by_name else "rgba" if "rgba" in by_name else None
+    if name is None or by_name[name][2] not in (PointField.UINT32, PointField.FLOAT32):
+        return None
+    records = cloud.records if cloud.mask is None else cloud.records.take(np.flatnonzero(cloud.mask), axis=0)
+    dt = np.dtype(">u4" if cloud.layout.is_bigendian else "<u4")
+    packed = np.ndarray((len(records),), dt, records, by_name[name][1], (cloud.layout.point_step,)).astype(np.uint32)
+    return np.stack([(packed >> 16) & 255, (packed >> 8) & 255, packed & 255], axis=1).astype(np.uint8)
 
 
 def _to_data(buffer: np.ndarray) -> array.array:

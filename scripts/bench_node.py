@@ -13,7 +13,7 @@ soak: the node runs in its own process (as with `ros2 run`) with the shipped Fas
   and prints the node's counters and resident memory (RSS) every 5 s. The node must keep up or drop by
   policy (superseded pairs), and RSS must stay flat.
 
-Without --checkpoint an untrained default-size model (N=512) is used: weights do not change timing.
+The model is the shipped scene model `7scenes` unless --checkpoint names another.
 ROS isolation: ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST and a random ROS_DOMAIN_ID unless already set.
 """
 
@@ -43,6 +43,7 @@ from rclpy.qos import QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import PointCloud2
 from std_msgs.msg import Header
 
+from genreg_ros.conversions import split_ns
 from genreg_ros.pointcloud2 import array_to_msg
 
 
@@ -64,22 +65,7 @@ def make_clouds(n: int) -> tuple[PointCloud2, PointCloud2]:
 
 
 def set_stamp(msg: PointCloud2, t_ns: int) -> None:
-    msg.header.stamp.sec, msg.header.stamp.nanosec = divmod(t_ns, 1_000_000_000)
-
-
-def checkpoint_path(given: str | None) -> str:
-    if given:
-        return given
-    import torch
-
-    from genreg_core.checkpoint import save_checkpoint
-    from genreg_core.config import ModelConfig
-    from genreg_core.model.genreg import GenRegNet
-
-    torch.manual_seed(0)
-    path = Path(tempfile.mkdtemp(prefix="genreg_bench_")) / "untrained.pt"
-    save_checkpoint(GenRegNet(ModelConfig()), path)
-    return str(path)
+    msg.header.stamp.sec, msg.header.stamp.nanosec = split_ns(t_ns)
 
 
 def med(values) -> float:
@@ -90,7 +76,7 @@ def med(values) -> float:
 def overhead(args) -> None:
     from genreg_ros.node import RegisterNode
 
-    ckpt = checkpoint_path(args.checkpoint)
+    ckpt = args.checkpoint
     ns = f"/bench_{os.getpid()}"
     rclpy.init()
     node = RegisterNode(namespace=ns, parameter_overrides=[Parameter("model.checkpoint", value=ckpt)])
@@ -110,17 +96,17 @@ def overhead(args) -> None:
     print(f"node overhead, {args.points} points per cloud ({len(src.data) / 1e6:.1f} MB), {args.pairs} pairs "
           "(+2 warm-up), median; goal <= 15 ms")
     for i in range(args.pairs + 2):
-        n0 = node._stats.registered
+        n0 = node.stats.registered
         set_stamp(src, (1000 + i) * 10**9)
         set_stamp(tgt, (1000 + i) * 10**9)
         pub_s.publish(src)
         pub_t.publish(tgt)
         deadline = time.monotonic() + 30
-        while node._stats.registered == n0 and time.monotonic() < deadline:
+        while node.stats.registered == n0 and time.monotonic() < deadline:
             time.sleep(0.002)
-    with node._stats.lock:
-        history = list(node._stats.history)[2:]
-        callbacks = list(node._stats.callback)[4:]
+    with node.stats.lock:
+        history = list(node.stats.history)[2:]
+        callbacks = list(node.stats.callback)[4:]
     assert len(history) == args.pairs and all(w == src.width for w in got), "not every pair was registered"
     cb = 2e3 * med(callbacks)
     parts = {k: med([h[k] for h in history]) for k in ("decode_ms", "encode_ms", "publish_ms")}
@@ -148,7 +134,7 @@ def rss_mb(pid: int) -> float:
 
 
 def soak(args) -> None:
-    ckpt = checkpoint_path(args.checkpoint)
+    ckpt = args.checkpoint
     ns = f"/soak_{os.getpid()}"
     cmd = [sys.executable, "-m", "genreg_ros.node", "--ros-args", "-r", f"__ns:={ns}",
            "-p", f"model.checkpoint:={ckpt}", "-p", "diagnostics.period:=1.0", *args.node_args]
@@ -237,7 +223,7 @@ def main() -> None:
     ap.add_argument("--pairs", type=int, default=30, help="overhead: pairs measured")
     ap.add_argument("--rate", type=float, default=30.0, help="soak: pairs per second")
     ap.add_argument("--duration", type=float, default=60.0, help="soak: seconds")
-    ap.add_argument("--checkpoint", help="model checkpoint (default: an untrained N=512 model)")
+    ap.add_argument("--checkpoint", default="7scenes", help="model checkpoint: a shipped name or a .pt path")
     ap.add_argument("--node-args", nargs="*", default=[], help="soak: extra --ros-args for the node")
     args = ap.parse_args()
     overhead(args) if args.mode == "overhead" else soak(args)

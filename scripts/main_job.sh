@@ -25,18 +25,16 @@ else
 fi
 
 # Model: GENREG_MODEL if set, else the shipped scene model (genreg_core/weights/7scenes.pt) if present, else
-# the node's default (model.checkpoint in config/genreg.yaml). A missing checkpoint gets a clear NOTE and an
-# untrained stand-in, so the pipeline (DDS, relay, node, report) still runs end to end.
+# the node's default (model.checkpoint in config/genreg.yaml). A missing checkpoint is a one-line error.
 if [ -n "${GENREG_MODEL:-}" ]; then
   MODEL=$GENREG_MODEL
 elif [ -f genreg_core/weights/7scenes.pt ]; then
   MODEL=7scenes
 else
-  MODEL=$(python -c "from genreg_ros.replay import yaml_param; \
+  MODEL=$(python -c "from genreg_ros.replay.harness import yaml_param; \
 print(yaml_param('config/genreg.yaml', 'model.checkpoint', 'modelnet40'))")
 fi
 echo "model: $MODEL    ROS_DOMAIN_ID=$ROS_DOMAIN_ID    report: $REPORT/report.md"
 
-python -m genreg_ros.replay --bag "$BAG" --gap 1 --rate 1.0 --checkpoint "$MODEL" --untrained-fallback \
-  --report "$REPORT"
+python -m genreg_ros.replay --bag "$BAG" --gap 1 --rate 1.0 --checkpoint "$MODEL" --report "$REPORT"
 echo "main job done in $(( $(date +%s) - START )) s after setup"

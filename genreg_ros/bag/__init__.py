@@ -6,7 +6,7 @@ plus a packed `rgb` float32 where colour exists) and the ground-truth camera pos
 x_world = R x_camera + t). Stamps are `start + (frame - first_frame) / rate`.
 """
 
-from genreg_ros.bag.reader import BagData, CloudDecodeError, CloudRecord, PoseRecord, decode_cloud, read_bag
+from genreg_ros.bag.reader import BagData, CloudRecord, PoseRecord, decode_cloud, read_bag
 from genreg_ros.bag.writer import (
     DEFAULT_CLOUD_TOPIC,
     DEFAULT_FRAME_ID,
@@ -30,7 +30,6 @@ __all__ = [
     "DEFAULT_WORLD_FRAME",
     "BagData",
     "BagWriter",
-    "CloudDecodeError",
     "CloudRecord",
     "Frame",
     "PoseRecord",

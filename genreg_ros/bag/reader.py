@@ -18,21 +18,13 @@ import numpy as np
 import yaml
 from rosbags.rosbag2 import Reader
 from rosbags.typesys import Stores, get_typestore
-from scipy.spatial.transform import Rotation
+
+from genreg_ros.conversions import msg_to_matrix, stamp_ns
+from genreg_ros.pointcloud2 import PointCloud2Error, read_points, unpack_rgb
 
 TYPESTORE = get_typestore(Stores.ROS2_KILTED)
 CLOUD_TYPE = "sensor_msgs/msg/PointCloud2"
 POSE_TYPES = ("geometry_msgs/msg/TransformStamped", "geometry_msgs/msg/PoseStamped")
-# PointField datatype -> numpy type (byte order added per message).
-_DTYPES = {1: "i1", 2: "u1", 3: "i2", 4: "u2", 5: "i4", 6: "u4", 7: "f4", 8: "f8"}
-
-
-class CloudDecodeError(ValueError):
-    """A PointCloud2 that cannot be decoded; `reason` is a short code (same names as the node uses)."""
-
-    def __init__(self, reason: str, text: str) -> None:
-        super().__init__(text)
-        self.reason = reason
 
 
 @dataclass
@@ -87,63 +79,17 @@ class BagData:
         return list(range(len(self.clouds)))
 
 
-def _stamp(msg: Any) -> int:
-    return int(msg.header.stamp.sec) * 1_000_000_000 + int(msg.header.stamp.nanosec)
-
-
 def decode_cloud(msg: Any) -> tuple[np.ndarray, np.ndarray | None]:
-    """(N, 3) float32 x, y, z (all points, row-major, NaNs kept) and (N, 3) uint8 colours or None.
-
-    Works on rosbags and rclpy PointCloud2 alike. Raises CloudDecodeError with reason 'empty_cloud',
-    'missing_xyz', 'bad_xyz_type', 'bad_layout' or 'truncated_data'.
-    """
-    height, width, step, row_step = int(msg.height), int(msg.width), int(msg.point_step), int(msg.row_step)
-    if height * width == 0:
-        raise CloudDecodeError("empty_cloud", f"cloud is empty ({width} x {height})")
-    order = ">" if msg.is_bigendian else "<"
-    fields = {f.name: f for f in msg.fields}
-    if not all(n in fields for n in "xyz"):
-        raise CloudDecodeError("missing_xyz", f"no x/y/z fields (fields: {list(fields)})")
-    names, formats, offsets = [], [], []
-    for f in msg.fields:
-        code = _DTYPES.get(int(f.datatype))
-        if code is None:
-            raise CloudDecodeError("bad_layout", f"field {f.name!r} has unknown datatype {f.datatype}")
-        count = max(int(f.count), 1)
-        if int(f.offset) + np.dtype(code).itemsize * count > step:
-            raise CloudDecodeError("bad_layout", f"field {f.name!r} does not fit in point_step {step}")
-        names.append(f.name)
-        formats.append((order + code, (count,)) if count > 1 else order + code)
-        offsets.append(int(f.offset))
-    if any(int(fields[n].datatype) not in (7, 8) for n in "xyz"):
-        raise CloudDecodeError("bad_xyz_type", "x, y and z must be FLOAT32 or FLOAT64")
-    if row_step < width * step:
-        raise CloudDecodeError("bad_layout", f"row_step {row_step} < width {width} * point_step {step}")
-    data = np.frombuffer(bytes(msg.data) if not isinstance(msg.data, np.ndarray) else msg.data, np.uint8)
-    if len(data) < row_step * height:
-        raise CloudDecodeError("truncated_data", f"data has {len(data)} bytes, needs {row_step * height}")
-    dtype = np.dtype({"names": names, "formats": formats, "offsets": offsets, "itemsize": step})
-    rows = data[: row_step * height].reshape(height, row_step)[:, : width * step]
-    records = np.ascontiguousarray(rows).view(dtype).reshape(-1)
-    points = np.stack([records[n].astype(np.float32) for n in "xyz"], axis=1)
-    colors = None
-    rgb_name = "rgb" if "rgb" in fields else "rgba" if "rgba" in fields else None
-    if rgb_name and int(fields[rgb_name].datatype) in (6, 7):
-        packed = records[rgb_name].astype(order + ("u4" if fields[rgb_name].datatype == 6 else "f4"))
-        packed = packed.view(order + "u4").astype(np.uint32)
-        colors = np.stack([(packed >> 16) & 255, (packed >> 8) & 255, packed & 255], axis=1).astype(np.uint8)
-    return points, colors
+    """(N, 3) float32 x, y, z (all points, row-major, NaNs kept) and (N, 3) uint8 colours or None, decoded
+    by the node's codec (`genreg_ros.pointcloud2`). Raises PointCloud2Error (reason 'empty_cloud',
+    'missing_xyz', 'bad_xyz_type', 'bad_layout' or 'truncated_data')."""
+    cloud = read_points(msg, finite_only=False)
+    return cloud.points.astype(np.float32, copy=False), unpack_rgb(cloud)
 
 
-def _pose(msgtype: str, msg: Any) -> PoseRecord:
-    T = np.eye(4)
-    if msgtype == POSE_TYPES[0]:
-        tr, q, child = msg.transform.translation, msg.transform.rotation, msg.child_frame_id
-    else:
-        tr, q, child = msg.pose.position, msg.pose.orientation, ""
-    T[:3, :3] = Rotation.from_quat([q.x, q.y, q.z, q.w]).as_matrix()
-    T[:3, 3] = [tr.x, tr.y, tr.z]
-    return PoseRecord(_stamp(msg), msg.header.frame_id, child, T)
+def _pose(msg: Any) -> PoseRecord:
+    return PoseRecord(stamp_ns(msg.header), msg.header.frame_id, getattr(msg, "child_frame_id", ""),
+                      msg_to_matrix(msg))
 
 
 def _pick(topics: dict[str, str], wanted: str | None, types: tuple[str, ...], what: str) -> str | None:
@@ -174,15 +120,15 @@ def read_bag(
         for conn, log_time, raw in reader.messages(connections=conns):
             msg = TYPESTORE.deserialize_cdr(raw, conn.msgtype)
             if conn.topic == pose_topic:
-                poses.append(_pose(conn.msgtype, msg))
+                poses.append(_pose(msg))
                 continue
-            rec = CloudRecord(conn.topic, _stamp(msg), log_time, msg.header.frame_id, bytes(raw),
+            rec = CloudRecord(conn.topic, stamp_ns(msg.header), log_time, msg.header.frame_id, bytes(raw),
                               fields=tuple(f.name for f in msg.fields))
             try:
                 points, colors = decode_cloud(msg)
                 if decode:
                     rec.points, rec.colors = points, colors
-            except CloudDecodeError as exc:
+            except PointCloud2Error as exc:
                 rec.error, rec.error_text = exc.reason, str(exc)
             clouds.append(rec)
     return BagData(path, cloud_topic, pose_topic, clouds, poses, read_info(path))

@@ -17,14 +17,15 @@ import shutil
 from collections.abc import Iterable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
+from types import SimpleNamespace
 from typing import Any, Self
 
 import numpy as np
 from rosbags.rosbag2 import StoragePlugin, Writer
 from rosbags.typesys import Stores, get_typestore
-from scipy.spatial.transform import Rotation
 
 from genreg_core.data.rgbd import RGBDSequence
+from genreg_ros import conversions
 
 TYPESTORE = get_typestore(Stores.ROS2_KILTED)
 STORAGES = {"mcap": StoragePlugin.MCAP, "sqlite3": StoragePlugin.SQLITE3}
@@ -41,6 +42,8 @@ DEFAULT_START_NS = 1_700_000_000 * 10**9  # first stamp: a fixed time, so bags a
 
 _T = TYPESTORE.types
 _FLOAT32 = _T["sensor_msgs/msg/PointField"].FLOAT32
+MESSAGE_TYPES = SimpleNamespace(**{name: _T[f"geometry_msgs/msg/{name}"]  # for conversions.matrix_to_msg
+                                   for name in ("TransformStamped", "Transform", "Vector3", "Quaternion")})
 
 
 @dataclass(frozen=True)
@@ -57,7 +60,7 @@ class Frame:
 
 def header(stamp_ns: int, frame_id: str) -> Any:
     """A rosbags std_msgs/Header."""
-    sec, nanosec = divmod(int(stamp_ns), 1_000_000_000)
+    sec, nanosec = conversions.split_ns(stamp_ns)
     return _T["std_msgs/msg/Header"](stamp=_T["builtin_interfaces/msg/Time"](sec=sec, nanosec=nanosec),
                                      frame_id=frame_id)
 
@@ -88,15 +91,8 @@ def cloud_message(stamp_ns: int, frame_id: str, points: np.ndarray, colors: np.n
 
 
 def transform_message(stamp_ns: int, parent: str, child: str, T: np.ndarray) -> Any:
-    """A rosbags TransformStamped of the 4x4 T_parent_child (x_parent = R x_child + t)."""
-    T = np.asarray(T, dtype=np.float64)
-    x, y, z = (float(v) for v in T[:3, 3])
-    qx, qy, qz, qw = (float(v) for v in Rotation.from_matrix(T[:3, :3]).as_quat())
-    transform = _T["geometry_msgs/msg/Transform"](
-        translation=_T["geometry_msgs/msg/Vector3"](x=x, y=y, z=z),
-        rotation=_T["geometry_msgs/msg/Quaternion"](x=qx, y=qy, z=qz, w=qw),
-    )
-    return _T[TRANSFORM_TYPE](header=header(stamp_ns, parent), child_frame_id=child, transform=transform)
+    """A rosbags TransformStamped of the 4x4 T_parent_child (`genreg_ros.conversions.matrix_to_msg`)."""
+    return conversions.matrix_to_msg(T, header(stamp_ns, parent), child, MESSAGE_TYPES)
 
 
 class BagWriter:
@@ -140,8 +136,7 @@ class BagWriter:
 
     def write_cloud(self, msg: Any) -> None:
         """Write any rosbags PointCloud2 (also a deliberately malformed one) at its header stamp."""
-        stamp = msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec
-        self._writer.write(self._clouds, stamp, TYPESTORE.serialize_cdr(msg, CLOUD_TYPE))
+        self._writer.write(self._clouds, conversions.stamp_ns(msg.header), TYPESTORE.serialize_cdr(msg, CLOUD_TYPE))
         self.num_clouds += 1
 
     def write_pose(self, stamp_ns: int, T_world_camera: np.ndarray) -> None:

@@ -1,16 +1,14 @@
-"""genreg-replay: replay bags of RGB-D clouds through register_node and score it against ground truth.
-
-    genreg-replay --bag cache/bags/redkitchen_val --gap 1                 # starts register_node itself
-    genreg-replay --bag b1 --bag b2 --gap 5 --lockstep --report cache/replay/x
-    genreg-replay --bag b --connect --namespace /robot                    # a node that is already running
+"""The replay harness: register_node as a process, an rclpy client that relays bag pairs to it and records
+its outputs, and `replay()`, which runs bags through it and scores them (genreg-replay: `.cli`).
 
 Relay: cloud k of a bag is published on `<ns>/source_cloud`, and cloud k - gap (the target) on
 `<ns>/target_cloud` with cloud k's stamp, so the node's approximate-time sync pairs them exactly (a node
 started here gets sync.slop 1 ms, so a lost message can never be paired with a neighbour's cloud).
 Stamps: each bag is shifted to start at the current wall-clock time (the bag's relative timing is kept),
 because the node, like any stream consumer, expects stamps to move forward across replays;
-keep_stamps publishes the bag's own stamps. The node answers with `transform` (T_target_source: x_target = R x_source + t) and
-`aligned_cloud`, both stamped with the source's stamp, which is how outputs are matched to pairs.
+keep_stamps publishes the bag's own stamps. The node answers with `transform` (T_target_source, see
+`genreg_core.geometry`) and `aligned_cloud`, both stamped with the source's stamp, which is how outputs
+are matched to pairs.
 Timing: clouds go out at their bag timing divided by `rate` (rate 0: as fast as possible); `lockstep`
 waits for each pair's output, or for the node to count it as dropped, before the next one.
 Drops: every pair without output gets a reason: a malformed bag message (found by the harness), else a
@@ -22,7 +20,6 @@ DDS profile config/fastdds_large_clouds.xml; the harness sets them for itself an
 
 from __future__ import annotations
 
-import argparse
 import os
 import secrets
 import signal
@@ -40,15 +37,23 @@ import numpy as np
 import yaml
 
 from genreg_ros.bag.reader import BagData, read_bag
-from genreg_ros.replay_report import PairResult, format_summary, icp_point_to_point, summarize, write_report
+from genreg_ros.conversions import msg_to_matrix, split_ns, stamp_ns
+from genreg_ros.replay.report import format_summary, write_report
+from genreg_ros.replay.scoring import (
+    ICP_TEXT,
+    PairResult,
+    assign_reasons,
+    make_pairs,
+    malformed_clouds,
+    run_icp,
+    summarize,
+)
 
-REPO = Path(__file__).resolve().parent.parent
+REPO = Path(__file__).resolve().parents[2]
 DEFAULT_PARAMS = REPO / "config" / "genreg.yaml"
 FASTDDS_PROFILE = REPO / "config" / "fastdds_large_clouds.xml"
 NODE_NAME = "register_node"
 RELAY_SLOP = 0.001  # s, sync.slop given to a node started here (the relay's pairs have equal stamps)
-# Node counters that mean "this pair produced no output", in the order they are assigned to missing pairs.
-PAIR_REASONS = ("dropped.superseded", "failed.", "dropped.unmatched", "dropped.queue_full", "dropped.")
 
 
 class ReplayError(RuntimeError):
@@ -158,7 +163,7 @@ class NodeProcess:
 def restamp(raw: bytes, stamp_ns: int) -> bytes:
     """A serialised message whose header stamp (the first field, right after the 4-byte CDR
     encapsulation header) is replaced by stamp_ns."""
-    sec, nanosec = divmod(int(stamp_ns), 1_000_000_000)
+    sec, nanosec = split_ns(stamp_ns)
     order = "<" if raw[1] & 1 else ">"
     return raw[:4] + struct.pack(order + "iI", sec, nanosec) + raw[12:]
 
@@ -217,26 +222,17 @@ class Client:
         self._thread = threading.Thread(target=self.executor.spin, name="replay_executor", daemon=True)
         self._thread.start()
 
-    @staticmethod
-    def _stamp(msg: Any) -> int:
-        return int(msg.header.stamp.sec) * 1_000_000_000 + int(msg.header.stamp.nanosec)
-
     def _on_transform(self, msg: Any) -> None:
-        from scipy.spatial.transform import Rotation
-
         now = time.monotonic()
-        tr, q = msg.transform.translation, msg.transform.rotation
-        T = np.eye(4)
-        T[:3, :3] = Rotation.from_quat([q.x, q.y, q.z, q.w]).as_matrix()
-        T[:3, 3] = [tr.x, tr.y, tr.z]
+        out = _Output(now, msg.header.frame_id, msg.child_frame_id, msg_to_matrix(msg))
         with self.lock:
-            self.transforms[self._stamp(msg)] = _Output(now, msg.header.frame_id, msg.child_frame_id, T)
+            self.transforms[stamp_ns(msg.header)] = out
 
     def _on_aligned(self, msg: Any) -> None:
         out = _Output(time.monotonic(), msg.header.frame_id, num_points=int(msg.width) * int(msg.height),
                       fields=tuple(f.name for f in msg.fields))
         with self.lock:
-            self.aligned[self._stamp(msg)] = out
+            self.aligned[stamp_ns(msg.header)] = out
 
     def _on_diag(self, msg: Any) -> None:
         now = time.monotonic()
@@ -289,23 +285,6 @@ def _delta(after: dict[str, int], before: dict[str, int]) -> dict[str, int]:
 
 
 # ----------------------------------------------------------------------------- the replay of one bag
-def make_pairs(bag: BagData, gap: int) -> list[PairResult]:
-    """Pairs (target = cloud k - gap, source = cloud k) with their ground truth T_target_source."""
-    if gap < 1 or gap >= len(bag.clouds):
-        raise ReplayError(f"gap {gap} needs a bag with more than {gap} clouds ({bag.path} has {len(bag.clouds)})")
-    frames = bag.frame_numbers
-    pairs = []
-    for k in range(gap, len(bag.clouds)):
-        src, tgt = bag.clouds[k], bag.clouds[k - gap]
-        Tw_s, Tw_t = bag.pose_at(src.stamp_ns), bag.pose_at(tgt.stamp_ns)
-        T_gt = None if Tw_s is None or Tw_t is None else np.linalg.inv(Tw_t) @ Tw_s
-        finite = 0 if src.points is None else int(np.isfinite(src.points).all(axis=1).sum())
-        bad = f"source: {src.error}" if src.error else f"target: {tgt.error}" if tgt.error else ""
-        pairs.append(PairResult(str(bag.path), k, frames[k], frames[k - gap], src.stamp_ns, tgt.stamp_ns,
-                                src.frame_id, tgt.frame_id, finite, T_gt, malformed=bad))
-    return pairs
-
-
 def _check_alive(node: NodeProcess | None) -> None:
     if node is not None and not node.alive():
         raise ReplayError(f"register_node exited (code {node.proc.returncode}): {node.error_line()}")
@@ -340,7 +319,7 @@ def play(bag: BagData, client: Client, options: ReplayOptions, node: NodeProcess
     after = client.counters(time.monotonic() + 0.05, timeout=5.0) or before
     deltas = _delta(after, before)
     _collect(pairs, client)
-    _assign_reasons(pairs, deltas)
+    assign_reasons(pairs, deltas)
     return pairs, deltas
 
 
@@ -391,44 +370,7 @@ def _collect(pairs: list[PairResult], client: Client) -> None:
             p.header_problems.append(f"aligned cloud has {cloud.num_points} points, source {p.source_points}")
 
 
-def _assign_reasons(pairs: list[PairResult], deltas: dict[str, int]) -> None:
-    """Give each pair without output a reason, consuming the node's counted drops and failures."""
-    pool = Counter(deltas)
-    for p in pairs:
-        if p.registered:
-            continue
-        if p.malformed:
-            role, reason = p.malformed.split(": ", 1)
-            counted = pool[f"dropped.{reason}"] > 0
-            pool[f"dropped.{reason}"] -= counted
-            p.reason = f"malformed {role} ({reason})" + ("" if counted else ", not counted by the node")
-            continue
-        for prefix in PAIR_REASONS:
-            key = next((k for k in sorted(pool) if k.startswith(prefix) and pool[k] > 0), None)
-            if key is not None:
-                pool[key] -= 1
-                p.reason = f"node {key}"
-                break
-        else:
-            p.reason = "lost (no output, not counted by the node)"
-
-
 # ----------------------------------------------------------------------------- the API
-def _malformed(bag: BagData) -> list[dict[str, Any]]:
-    frames = bag.frame_numbers
-    return [{"bag": str(bag.path), "index": i, "frame": frames[i], "stamp_ns": c.stamp_ns, "reason": c.error,
-             "text": c.error_text} for i, c in enumerate(bag.clouds) if c.error]
-
-
-def _run_icp(bag: BagData, pairs: list[PairResult]) -> None:
-    """Open3D point-to-point ICP on each pair's bag clouds (source = cloud k, target = its target)."""
-    by_stamp = {c.stamp_ns: c.points for c in bag.clouds}
-    for p in pairs:
-        src, tgt = by_stamp.get(p.source_stamp), by_stamp.get(p.target_stamp)
-        if src is not None and tgt is not None and len(src) >= 3 and len(tgt) >= 3:
-            p.icp_T, p.icp_seconds = icp_point_to_point(src, tgt)
-
-
 def replay(bags: list[str | Path], options: ReplayOptions) -> ReplayResult:
     """Replay bags (one after the other, pairs never span bags) through register_node and evaluate."""
     log = _printer(options.verbose)
@@ -464,7 +406,7 @@ def replay(bags: list[str | Path], options: ReplayOptions) -> ReplayResult:
             got, deltas = play(bag, client, options, node)
             pairs += got
             counts.update(deltas)
-            malformed += _malformed(bag)
+            malformed += malformed_clouds(bag)
     finally:
         if client is not None:
             client.close()
@@ -474,7 +416,7 @@ def replay(bags: list[str | Path], options: ReplayOptions) -> ReplayResult:
                 log(f"note: register_node exited with code {code} (log {node.log_path})")
     if options.icp:
         for bag in data:
-            _run_icp(bag, [p for p in pairs if p.bag == str(bag.path)])
+            run_icp(bag, [p for p in pairs if p.bag == str(bag.path)])
     summary = summarize(pairs, dict(counts), malformed)
     text = format_summary(summary, _title(data, options))
     report = None
@@ -502,8 +444,7 @@ def _settings(data: list[BagData], options: ReplayOptions) -> dict[str, Any]:
         "rate": options.rate, "lockstep": options.lockstep, "node": "connected" if options.connect else "started",
         "params_file": str(options.params_file), "checkpoint": options.checkpoint or "(params file)",
         "node_params": {"sync.slop": RELAY_SLOP, **options.node_params} if not options.connect else {},
-        "ROS_DOMAIN_ID": os.environ.get("ROS_DOMAIN_ID"), "icp": "Open3D point-to-point, identity start, "
-        "voxel 0.02 m, max distance 0.1 m, 50 iterations",
+        "ROS_DOMAIN_ID": os.environ.get("ROS_DOMAIN_ID"), "icp": ICP_TEXT,
     }
 
 
@@ -512,91 +453,3 @@ def _printer(verbose: bool):
         if verbose:
             print(text, file=sys.stderr, flush=True)
     return log
-
-
-# ----------------------------------------------------------------------------- checkpoint fallback and CLI
-def resolve_model(name: str, fallback_dir: Path | None) -> tuple[str, str]:
-    """(checkpoint to use, note). With fallback_dir, a missing checkpoint is replaced by a randomly
-    initialised one written there (plumbing only: its accuracy means nothing)."""
-    from genreg_core.checkpoint import resolve_checkpoint
-    from genreg_core.errors import CheckpointError
-
-    try:
-        resolve_checkpoint(name)
-        return name, ""
-    except CheckpointError as exc:
-        if fallback_dir is None:
-            raise ReplayError(f"{exc}; train one with genreg-train, pass --checkpoint PATH, "
-                              "or --untrained-fallback to test the plumbing") from None
-        import torch
-
-        from genreg_core.checkpoint import save_checkpoint
-        from genreg_core.config import ModelConfig
-        from genreg_core.model.genreg import GenRegNet
-
-        path = Path(fallback_dir) / "untrained_n512_seed0.pt"
-        if not path.is_file():
-            torch.manual_seed(0)
-            save_checkpoint(GenRegNet(ModelConfig()), path, meta={"note": "untrained, for plumbing tests"})
-        note = (f"NOTE: checkpoint {name!r} is missing ({exc}). Falling back to an UNTRAINED model ({path}): "
-                "the pipeline runs, but the figures measure PDSAC + ICP refinement on random features, "
-                "not GenReg's accuracy.")
-        return str(path), note
-
-
-def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
-    p = argparse.ArgumentParser(prog="genreg-replay", description=__doc__.split("\n\n")[0],
-                                formatter_class=argparse.RawDescriptionHelpFormatter, epilog=__doc__)
-    p.add_argument("--bag", action="append", required=True, help="bag folder (repeat for several)")
-    p.add_argument("--gap", type=int, default=1, help="target = frame i, source = frame i + gap (bag clouds)")
-    p.add_argument("--rate", type=float, default=1.0, help="playback speed factor; 0: as fast as possible")
-    p.add_argument("--lockstep", action="store_true", help="wait for each pair's result before the next")
-    p.add_argument("--keep-stamps", action="store_true",
-                   help="publish the bag's stamps (default: shift each bag to start now)")
-    p.add_argument("--namespace", default="", help="the node's namespace")
-    p.add_argument("--connect", action="store_true", help="use a running register_node, do not start one")
-    p.add_argument("--params-file", type=Path, default=DEFAULT_PARAMS)
-    p.add_argument("--checkpoint", help="model.checkpoint for the node (default: the params file's)")
-    p.add_argument("--untrained-fallback", action="store_true",
-                   help="if the checkpoint is missing, use an untrained model (with a clear note)")
-    p.add_argument("-p", "--param", action="append", default=[], metavar="NAME:=VALUE",
-                   help="extra node parameter override (repeatable)")
-    p.add_argument("--no-icp", action="store_true", help="skip the Open3D ICP baseline")
-    p.add_argument("--report", type=Path, help="report folder (report.md, errors.png, trajectory.png)")
-    p.add_argument("--startup-timeout", type=float, default=90.0)
-    p.add_argument("--quiet", action="store_true")
-    return p.parse_args(argv)
-
-
-def main(argv: list[str] | None = None) -> int:
-    args = parse_args(argv)
-    bad = [kv for kv in args.param if ":=" not in kv]
-    if bad:
-        print(f"genreg-replay: error: -p takes NAME:=VALUE, got {bad[0]!r}", file=sys.stderr)
-        return 2
-    options = ReplayOptions(
-        gap=args.gap, rate=args.rate, lockstep=args.lockstep, keep_stamps=args.keep_stamps, namespace=args.namespace, connect=args.connect,
-        params_file=args.params_file, checkpoint=args.checkpoint,
-        node_params=dict(kv.split(":=", 1) for kv in args.param), icp=not args.no_icp,
-        report_dir=args.report, startup_timeout=args.startup_timeout, verbose=not args.quiet,
-    )
-    try:
-        if not args.connect:
-            name = options.checkpoint or yaml_param(options.params_file, "model.checkpoint", "modelnet40")
-            fallback = REPO / "cache" / "checkpoints" if args.untrained_fallback else None
-            model, note = resolve_model(str(name), fallback)
-            if note:
-                print(note, flush=True)
-                options.checkpoint = model
-        result = replay(args.bag, options)
-    except (ReplayError, OSError, ValueError) as exc:
-        print(f"genreg-replay: error: {exc}", file=sys.stderr)
-        return 1
-    print(result.text)
-    if result.report is not None:
-        print(f"report             {result.report}")
-    return 0
-
-
-if __name__ == "__main__":
-    sys.exit(main())

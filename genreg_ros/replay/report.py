@@ -1,133 +1,15 @@
-"""Evaluation side of the replay harness: per-pair results, Open3D ICP baseline, summary, report.
-
-Conventions: a pair is (target = cloud k - g, source = cloud k) of one bag; every transform is
-T_target_source (x_target = R x_source + t, metres); the ground truth is inv(T_world_target) @ T_world_source
-from the bag's poses. RE is the isotropic rotation error in degrees, TE the translation error in metres
-(genreg_core.metrics). Latency is the harness's wall time from publishing the source cloud to receiving
-the node's TransformStamped for it.
+"""The replay's outputs: the summary table (printed by genreg-replay and the main job) and the report
+folder (report.md, errors.png, trajectory.png). Figures come from `genreg_ros.replay.scoring`.
 """
 
 from __future__ import annotations
 
-import math
-import time
-from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from genreg_core.metrics import transform_errors
-
-
-@dataclass
-class PairResult:
-    """One replayed pair and what became of it."""
-
-    bag: str
-    k: int  # index of the source cloud in the bag; the target is cloud k - gap
-    source_frame: int
-    target_frame: int
-    source_stamp: int  # ns, the source's stamp in the bag
-    target_stamp: int  # ns, the target's stamp in the bag
-    source_frame_id: str
-    target_frame_id: str
-    source_points: int  # finite source points (what the aligned cloud must carry)
-    T_gt: np.ndarray | None  # 4x4 T_target_source from the bag's poses
-    out_stamp: int = 0  # ns, the stamp published with both clouds, which the node must put on its outputs
-    published: float | None = None  # time.monotonic() just before the source was published
-    malformed: str = ""  # "source: <reason>" / "target: <reason>" when the harness found the bag message bad
-    T_est: np.ndarray | None = None  # the node's transform
-    received: float | None = None  # arrival of the node's TransformStamped
-    aligned_received: float | None = None
-    header_problems: list[str] = field(default_factory=list)  # wrong stamps / frames / point counts
-    reason: str = ""  # why there is no output
-    icp_T: np.ndarray | None = None
-    icp_seconds: float | None = None
-
-    @property
-    def registered(self) -> bool:
-        return self.T_est is not None
-
-    @property
-    def latency(self) -> float | None:
-        if self.received is None or self.published is None:
-            return None
-        return self.received - self.published
-
-    def errors(self, T: np.ndarray | None) -> tuple[float, float]:
-        """(RE deg, TE m) of T against the ground truth; NaN when either is missing."""
-        if T is None or self.T_gt is None:
-            return math.nan, math.nan
-        return transform_errors(T, self.T_gt)
-
-
-# ----------------------------------------------------------------------------- Open3D ICP baseline
-ICP_MAX_DISTANCE = 0.1  # m: correspondence cut-off (gap-10 motion in 7-Scenes is ~7 cm)
-ICP_VOXEL = 0.02  # m: downsampling before ICP
-ICP_ITERATIONS = 50
-
-
-def icp_point_to_point(
-    source: np.ndarray, target: np.ndarray, max_distance: float = ICP_MAX_DISTANCE,
-    voxel: float = ICP_VOXEL, iterations: int = ICP_ITERATIONS,
-) -> tuple[np.ndarray, float]:
-    """Open3D point-to-point ICP from identity (metres); returns (T_target_source, seconds)."""
-    import open3d as o3d
-
-    reg = o3d.pipelines.registration
-    t0 = time.perf_counter()
-    clouds = []
-    for pts in (source, target):
-        pts = np.asarray(pts, dtype=np.float64)
-        pc = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(pts[np.isfinite(pts).all(axis=1)]))
-        clouds.append(pc.voxel_down_sample(voxel) if voxel > 0 else pc)
-    result = reg.registration_icp(clouds[0], clouds[1], max_distance, np.eye(4),
-                                  reg.TransformationEstimationPointToPoint(),
-                                  reg.ICPConvergenceCriteria(max_iteration=iterations))
-    return np.asarray(result.transformation), time.perf_counter() - t0
-
-
-# ----------------------------------------------------------------------------- summary
-def _stats(values: list[float]) -> dict[str, float]:
-    v = np.asarray([x for x in values if x is not None and math.isfinite(x)], dtype=np.float64)
-    if v.size == 0:
-        return {"n": 0, "mean": math.nan, "median": math.nan, "p95": math.nan, "max": math.nan}
-    return {"n": int(v.size), "mean": float(v.mean()), "median": float(np.median(v)),
-            "p50": float(np.median(v)), "p95": float(np.percentile(v, 95)), "max": float(v.max())}
-
-
-def summarize(pairs: list[PairResult], node_counts: dict[str, int], malformed: list[dict[str, Any]]) -> dict[str, Any]:
-    """Figures of a replay: counts, RE/TE (GenReg, and ICP on the same registered pairs and on all pairs),
-    latency, drop reasons, header problems."""
-    reg = [p for p in pairs if p.registered]
-    genreg = [p.errors(p.T_est) for p in reg]
-    icp_same = [p.errors(p.icp_T) for p in reg]
-    icp_all = [p.errors(p.icp_T) for p in pairs]
-    reasons: dict[str, int] = {}
-    for p in pairs:
-        if not p.registered:
-            reasons[p.reason] = reasons.get(p.reason, 0) + 1
-    return {
-        "pairs": len(pairs),
-        "registered": len(reg),
-        "missing": len(pairs) - len(reg),
-        "lost": sum(1 for p in pairs if not p.registered and p.reason.startswith("lost")),
-        "reasons": dict(sorted(reasons.items(), key=lambda kv: -kv[1])),
-        "re": _stats([e[0] for e in genreg]),
-        "te": _stats([e[1] for e in genreg]),
-        "icp_re": _stats([e[0] for e in icp_same]),
-        "icp_te": _stats([e[1] for e in icp_same]),
-        "icp_all_re": _stats([e[0] for e in icp_all]),
-        "icp_all_te": _stats([e[1] for e in icp_all]),
-        "identity_re": _stats([p.errors(np.eye(4))[0] for p in reg]),
-        "identity_te": _stats([p.errors(np.eye(4))[1] for p in reg]),
-        "latency": _stats([p.latency for p in reg]),
-        "icp_seconds": _stats([p.icp_seconds for p in pairs]),
-        "header_problems": sum(1 for p in reg if p.header_problems),
-        "node_counts": dict(node_counts),
-        "malformed": malformed,
-    }
+from genreg_ros.replay.scoring import PairResult
 
 
 def format_summary(s: dict[str, Any], title: str) -> str:

@@ -1,0 +1,259 @@
+"""register_node's settings: the core's config dataclasses plus what only the node has, in one tree.
+
+`NodeConfig` nests the core's `PDSACConfig`, `RefineConfig` and `PreprocessConfig` (their defaults, ranges
+and help live in `genreg_core`), the `RegistrationConfig` scalars (group `registration`) and the node's own
+groups below. A ROS parameter's name is the setting's dotted path (`settings(NodeConfig)`), e.g.
+`refine.max_iterations`; `genreg_ros.params` declares and validates them, and `config/genreg.yaml` is
+generated from the same list:
+
+    python -m genreg_ros.config --write-yaml config/genreg.yaml     # after changing a setting
+    python -m genreg_ros.config --check config/genreg.yaml          # exit 1 if the file is out of date
+
+Units: metres and seconds (REP-103), except the PDSAC/ICP distances, which are in the core's unit-box
+units (see `genreg_core.config`). Frames and transform names: `genreg_core.geometry`.
+"""
+
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import sys
+import typing
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from genreg_core.config import (
+    PDSACConfig,
+    RefineConfig,
+    RegistrationConfig,
+    Setting,
+    check_ranges,
+    setting,
+    settings,
+)
+from genreg_core.errors import ConfigError
+from genreg_core.preprocess import PreprocessConfig
+from genreg_ros.conversions import pose_matrix
+from genreg_ros.sync import MODES
+
+RELIABILITIES = ("best_effort", "reliable")
+
+
+@dataclass(frozen=True)
+class ModelParams:
+    """Which network the node loads, and its threads."""
+
+    checkpoint: str = setting("modelnet40", "Shipped model name (modelnet40, modelnet40_dgcnn, 7scenes) or a "
+                              ".pt checkpoint path.", start_up=True)
+    num_points: int = setting(0, "Expected model N (points per cloud fed to the network); 0 accepts the "
+                              "checkpoint's N.", low=0, high=65536, start_up=True)
+    num_threads: int = setting(0, "Torch CPU threads; 0 keeps torch's default.", low=0, high=256, start_up=True)
+
+    def __post_init__(self) -> None:
+        check_ranges(self, "model.")
+
+
+def _scalars_of(cls: type, name: str) -> type:
+    """A frozen dataclass with the non-nested fields of core config `cls`: same names, types, defaults,
+    limits and help (so the core stays their one home)."""
+    hints = typing.get_type_hints(cls)
+    fields = [(f.name, hints[f.name], dataclasses.field(default=f.default, metadata=f.metadata))
+              for f in dataclasses.fields(cls) if not dataclasses.is_dataclass(hints[f.name])]
+    return dataclasses.make_dataclass(name, fields, frozen=True, namespace={
+        "__doc__": f"The scalar settings of {cls.__name__} (defaults, limits and help from the core).",
+        "__post_init__": lambda self: check_ranges(self, "registration.")})
+
+
+RegistrationScalars = _scalars_of(RegistrationConfig, "RegistrationScalars")
+
+
+@dataclass(frozen=True)
+class SyncParams:
+    """Pairing of source and target clouds by stamp (`genreg_ros.sync`)."""
+
+    mode: str = setting("approximate", "approximate: pair by stamp within slop; latest_target: each source "
+                        "against the newest target.", choices=MODES)
+    slop: float = setting(0.05, "Largest stamp difference of a pair, s.", low=0.0, high=10.0)
+    queue_size: int = setting(5, "Unpaired messages kept per topic.", low=1, high=100)
+
+    def __post_init__(self) -> None:
+        check_ranges(self, "sync.")
+
+
+@dataclass(frozen=True)
+class QosParams:
+    """Quality of service of the subscriptions and the outputs."""
+
+    reliability: str = setting("best_effort", "Subscription reliability: best_effort (sensor data, accepts "
+                               "both kinds of publisher) or reliable.", choices=RELIABILITIES, start_up=True)
+    depth: int = setting(5, "Subscription history depth.", low=1, high=100, start_up=True)
+    publisher_reliability: str = setting("reliable", "Reliability of the output topics.", choices=RELIABILITIES,
+                                         start_up=True)
+
+    def __post_init__(self) -> None:
+        check_ranges(self, "qos.")
+
+
+@dataclass(frozen=True)
+class DiagnosticsParams:
+    """The /diagnostics status."""
+
+    period: float = setting(1.0, "Diagnostics publishing period, s.", low=0.05, high=60.0, start_up=True)
+    stale_timeout: float = setting(2.0, "Warn when a cloud topic is silent this long, s.", low=0.1, high=3600.0)
+
+    def __post_init__(self) -> None:
+        check_ranges(self, "diagnostics.")
+
+
+@dataclass(frozen=True)
+class NodeConfig:
+    """Every setting of register_node. Where the node's default differs from the API's, it says so here."""
+
+    model: ModelParams = setting(ModelParams(), "The network.")
+    pdsac: PDSACConfig = setting(PDSACConfig(), "PDSAC (the core's defaults).")
+    # The node refines with point-to-point ICP, 20 iterations; the API's default is no refinement.
+    refine: RefineConfig = setting(RefineConfig(method="point_to_point", max_iterations=20),
+                                   "ICP refinement: on in the node (the API's default is method none, 10 iterations).")
+    registration: RegistrationScalars = setting(RegistrationScalars(), "The RegistrationConfig scalars.")
+    preprocess: PreprocessConfig = setting(PreprocessConfig(), "Range, crop box and voxel grid.")
+    sync: SyncParams = setting(SyncParams(), "Stamp pairing.")
+    qos: QosParams = setting(QosParams(), "Quality of service.")
+    source_frame: str = setting("", "Source frame id; empty: the source header's frame_id.")
+    target_frame: str = setting("", "Target frame id; empty: the target header's frame_id.")
+    max_points: int = setting(1_000_000, "Clouds with more points (width * height) are dropped.", low=1,
+                              high=100_000_000)
+    initial_guess: tuple[float, ...] = setting((), "T_target_source start: [] none, [x, y, z, qx, qy, qz, qw] (m) "
+                                               "or 16 row-major 4x4 values. The initial_guess topic overrides it.")
+    use_last_result_as_guess: bool = setting(False, "Start each registration from the previous result (tracking).")
+    min_fitness: float = setting(0.0, "Results with lower fitness are counted as failed and not published.",
+                                 low=0.0, high=1.0)
+    warn_confidence: float = setting(0.3, "Results with lower confidence are published, with a throttled "
+                                     "warning, a low_confidence count and a WARN diagnostics status.",
+                                     low=0.0, high=1.0)
+    publish_generated: bool = setting(False, "Also publish the generated source cloud (debugging).")
+    publish_tf: bool = setting(False, "Broadcast the transform on /tf (needs tf2_ros).", start_up=True)
+    diagnostics: DiagnosticsParams = setting(DiagnosticsParams(), "The /diagnostics status.")
+
+    def __post_init__(self) -> None:
+        check_ranges(self)
+        self.registration_config()  # the core's own checks (e.g. the device name)
+        self.initial_guess_matrix()
+
+    def registration_config(self) -> RegistrationConfig:
+        """The core's RegistrationConfig: each of its fields is the NodeConfig field of the same name, or
+        the `registration` group's."""
+        return RegistrationConfig(**{
+            f.name: getattr(self, f.name) if hasattr(self, f.name) else getattr(self.registration, f.name)
+            for f in dataclasses.fields(RegistrationConfig)})
+
+    def initial_guess_matrix(self) -> np.ndarray | None:
+        """The initial_guess setting as a 4x4 T_target_source (None if empty); ConfigError if not rigid."""
+        v = np.asarray(self.initial_guess, dtype=np.float64)
+        if v.size == 0:
+            return None
+        if v.size == 7:
+            try:
+                return pose_matrix(v[:3], v[3:])
+            except ValueError:
+                raise ConfigError("initial_guess quaternion (qx, qy, qz, qw) must not be zero") from None
+        if v.size == 16:
+            T = v.reshape(4, 4)
+            R = T[:3, :3]
+            if not np.allclose(T[3], [0, 0, 0, 1]) or not np.allclose(R @ R.T, np.eye(3), atol=1e-4) or (
+                np.linalg.det(R) < 0
+            ):
+                raise ConfigError("initial_guess must be a rigid transform (orthonormal R, det +1, last row 0 0 0 1)")
+            return T
+        raise ConfigError(f"initial_guess must have 0, 7 or 16 values, got {v.size}")
+
+
+SETTINGS: tuple[Setting, ...] = settings(NodeConfig)
+
+
+# ----------------------------------------------------------------------------- config/genreg.yaml
+YAML_HEADER = """\
+# Parameters of genreg_ros register_node, with their defaults. GENERATED from genreg_ros/config.py
+# (and the core's config dataclasses): edit those, then run
+#   python -m genreg_ros.config --write-yaml config/genreg.yaml
+# Use:  ros2 run genreg_ros register_node --ros-args --params-file config/genreg.yaml
+# Units: metres and seconds (REP-103). PDSAC/ICP distances are in the core's unit-box units
+# (fractions of the source cloud's bounding-box size). Empty lists / strings mean "off" / "from the message";
+# registration.seed -1 draws fresh randomness. Parameters marked (start-up) are read once; the others can
+# be changed at run time (ros2 param set).
+"""
+
+
+def yaml_scalar(value: Any) -> str:
+    """A parameter value as rcl's YAML reads it back with the same type (floats always have a dot)."""
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    if isinstance(value, (list, tuple)):
+        return "[" + ", ".join(yaml_scalar(float(v)) for v in value) + "]"
+    if isinstance(value, float):
+        text = repr(value)
+        if "e" in text and "." not in text:
+            mantissa, exponent = text.split("e")
+            text = f"{mantissa}.0e{exponent}"
+        return text
+    if isinstance(value, str):
+        return value if value and value.replace("_", "").replace(".", "").isalnum() else f'"{value}"'
+    return str(value)
+
+
+def _comment(s: Setting) -> str:
+    parts = ["(start-up)"] if s.start_up else []
+    parts.append(s.help)
+    if s.choices:
+        parts.append(f"One of: {', '.join(s.choices)}.")
+    elif s.low is not None and s.high is not None:
+        parts.append(f"[{s.low:g}, {s.high:g}]")
+    elif s.low is not None:
+        parts.append(f"(>= {s.low:g})")
+    if type(None) in typing.get_args(s.type):  # ROS has no None (genreg_ros.params.to_ros)
+        parts.append("ROS: -1 for None." if int in typing.get_args(s.type) else "ROS: [] for none.")
+    return " ".join(parts)
+
+
+def yaml_text(ros_value=None) -> str:
+    """config/genreg.yaml: every parameter with its default and a comment. `ros_value(setting, value)`
+    gives a default's ROS form (default: `genreg_ros.params.to_ros`)."""
+    if ros_value is None:
+        from genreg_ros.params import to_ros as ros_value
+    lines, group = [YAML_HEADER + "/**:", "  ros__parameters:"], ()
+    for s in SETTINGS:
+        *path, leaf = s.name.split(".")
+        common = 0
+        while common < min(len(path), len(group)) and path[common] == group[common]:
+            common += 1
+        for depth in range(common, len(path)):
+            lines.append("    " + "  " * depth + f"{path[depth]}:")
+        group = tuple(path)
+        entry = "    " + "  " * len(path) + f"{leaf}: {yaml_scalar(ros_value(s, s.default))}"
+        lines.append(f"{entry:<40} # {_comment(s)}")
+    return "\n".join(lines) + "\n"
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(prog="python -m genreg_ros.config", description=__doc__.split("\n\n")[0])
+    action = p.add_mutually_exclusive_group(required=True)
+    action.add_argument("--write-yaml", type=Path, metavar="PATH", help="write the params file")
+    action.add_argument("--check", type=Path, metavar="PATH", help="exit 1 if PATH differs from the generated file")
+    args = p.parse_args(argv)
+    text = yaml_text()
+    if args.write_yaml:
+        args.write_yaml.write_text(text)
+        print(f"wrote {args.write_yaml} ({len(SETTINGS)} parameters)")
+        return 0
+    if args.check.read_text() != text:
+        print(f"{args.check} is out of date: run python -m genreg_ros.config --write-yaml {args.check}",
+              file=sys.stderr)
+        return 1
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

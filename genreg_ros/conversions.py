@@ -1,0 +1,71 @@
+"""The one stamp helper and the one TransformStamped <-> 4x4 matrix converter of genreg_ros.
+
+Frames, units and transform names follow `genreg_core.geometry` (T_target_source, x' = R x + t, metres).
+Messages are duck-typed: rclpy messages and rosbags' deserialised messages have the same field names, so
+both go through these functions (the rosbags side passes its own message classes as `types`).
+"""
+
+from __future__ import annotations
+
+from types import SimpleNamespace
+from typing import Any
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+NS_PER_S = 1_000_000_000
+
+
+def stamp_ns(header: Any) -> int:
+    """A header's stamp (builtin_interfaces/Time: sec, nanosec) in integer nanoseconds."""
+    return int(header.stamp.sec) * NS_PER_S + int(header.stamp.nanosec)
+
+
+def split_ns(ns: int) -> tuple[int, int]:
+    """(sec, nanosec) of a stamp in integer nanoseconds."""
+    return divmod(int(ns), NS_PER_S)
+
+
+def pose_matrix(translation: Any, quaternion_xyzw: Any) -> np.ndarray:
+    """4x4 rigid transform of a translation (3,) and a quaternion (qx, qy, qz, qw), normalised here.
+
+    ValueError for a zero or non-finite quaternion or translation."""
+    t = np.asarray(translation, dtype=np.float64).reshape(3)
+    q = np.asarray(quaternion_xyzw, dtype=np.float64).reshape(4)
+    if not (np.isfinite(q).all() and np.isfinite(t).all()) or np.linalg.norm(q) < 1e-6:
+        raise ValueError("transform has a zero or non-finite quaternion or translation")
+    T = np.eye(4)
+    T[:3, :3] = Rotation.from_quat(q / np.linalg.norm(q)).as_matrix()
+    T[:3, 3] = t
+    return T
+
+
+def msg_to_matrix(msg: Any) -> np.ndarray:
+    """4x4 T_parent_child of a geometry_msgs TransformStamped (or a PoseStamped: T_frame_pose)."""
+    if hasattr(msg, "transform"):
+        tr, r = msg.transform.translation, msg.transform.rotation
+    else:
+        tr, r = msg.pose.position, msg.pose.orientation
+    return pose_matrix([tr.x, tr.y, tr.z], [r.x, r.y, r.z, r.w])
+
+
+def rclpy_types() -> SimpleNamespace:
+    """The rclpy geometry_msgs classes `matrix_to_msg` builds with (imported on first use)."""
+    from geometry_msgs.msg import Quaternion, Transform, TransformStamped, Vector3
+
+    return SimpleNamespace(TransformStamped=TransformStamped, Transform=Transform, Vector3=Vector3,
+                           Quaternion=Quaternion)
+
+
+def matrix_to_msg(T: np.ndarray, header: Any, child_frame: str, types: SimpleNamespace | None = None) -> Any:
+    """TransformStamped of T_parent_child: parent = header.frame_id, child = child_frame.
+
+    `types` holds the message classes TransformStamped, Transform, Vector3 and Quaternion (default:
+    rclpy's, `rclpy_types()`); the header must be of the same family."""
+    types = types or rclpy_types()
+    T = np.asarray(T, dtype=np.float64)
+    x, y, z = (float(v) for v in T[:3, 3])
+    qx, qy, qz, qw = (float(v) for v in Rotation.from_matrix(T[:3, :3]).as_quat())
+    transform = types.Transform(translation=types.Vector3(x=x, y=y, z=z),
+                                rotation=types.Quaternion(x=qx, y=qy, z=qz, w=qw))
+    return types.TransformStamped(header=header, child_frame_id=child_frame, transform=transform)

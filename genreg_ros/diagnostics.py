@@ -1,0 +1,147 @@
+"""register_node's counters and its /diagnostics status (one DiagnosticStatus per node).
+
+`Stats` is written by the subscription callbacks and the worker (thread-safe); `build_status` turns one
+snapshot of it into the status: level WARN when a cloud topic is stale, the last pair failed or its
+confidence was below warn_confidence; values as listed in docs/ros_node.md.
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from collections import Counter, deque
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+from diagnostic_msgs.msg import DiagnosticStatus, KeyValue
+
+from genreg_ros.sync import SOURCE, TARGET
+
+
+class Stats:
+    """Thread-safe counters and recent figures behind /diagnostics."""
+
+    def __init__(self) -> None:
+        self.lock = threading.Lock()
+        self.start = time.monotonic()
+        self.received: Counter[str] = Counter()
+        self.dropped: Counter[str] = Counter()
+        self.failed: Counter[str] = Counter()
+        self.registered = 0
+        self.low_confidence = 0  # registered and published, but below warn_confidence
+        self.paired = 0  # pairs formed by the sync; each is registered, failed, dropped or superseded
+        self.last_arrival: dict[str, float | None] = {SOURCE: None, TARGET: None}
+        self.latency = deque(maxlen=100)  # s, arrival of the pair's later cloud -> published
+        self.overhead = deque(maxlen=100)  # s, node work besides preprocessing and registration
+        self.callback = deque(maxlen=200)  # s, one cloud subscription callback (checks + pairing)
+        self.last: dict[str, float] = {}
+        self.history = deque(maxlen=100)  # figures of the last registered pairs (benchmarks read them)
+        self.last_outcome = ""  # "", "registered", "registered with low confidence" or "failed: <reason>"
+
+    def arrived(self, topic: str, now: float) -> None:
+        with self.lock:
+            self.received[topic] += 1
+            self.last_arrival[topic] = now
+
+    def pair_formed(self) -> None:
+        with self.lock:
+            self.paired += 1
+
+    def drop(self, reason: str) -> None:
+        with self.lock:
+            self.dropped[reason] += 1
+
+    def fail(self, reason: str) -> None:
+        with self.lock:
+            self.failed[reason] += 1
+            self.last_outcome = f"failed: {reason}"
+
+    def ok(self, latency: float, overhead: float, figures: dict[str, float], low_confidence: bool = False) -> None:
+        with self.lock:
+            self.registered += 1
+            self.low_confidence += int(low_confidence)
+            self.latency.append(latency)
+            self.overhead.append(overhead)
+            self.last = dict(figures)
+            self.history.append(self.last)
+            self.last_outcome = "registered with low confidence" if low_confidence else "registered"
+
+    def snapshot(self) -> Snapshot:
+        with self.lock:
+            return Snapshot(
+                Counter(self.received), Counter(self.dropped), Counter(self.failed), self.registered,
+                self.low_confidence, self.paired, dict(self.last_arrival), list(self.latency),
+                list(self.overhead), list(self.callback), dict(self.last), self.last_outcome, self.start)
+
+
+@dataclass(frozen=True)
+class Snapshot:
+    """A consistent copy of `Stats` at one instant."""
+
+    received: Counter
+    dropped: Counter
+    failed: Counter
+    registered: int
+    low_confidence: int
+    paired: int
+    last_arrival: dict[str, float | None]
+    latency: list[float]
+    overhead: list[float]
+    callback: list[float]
+    last: dict[str, float]
+    last_outcome: str
+    start: float
+
+    def silent_for(self, topic: str, now: float) -> float:
+        """Seconds since `topic` last delivered a cloud (since start-up if it never did)."""
+        return now - (self.last_arrival[topic] or self.start)
+
+
+def build_status(s: Snapshot, now: float, name: str, hardware_id: str, stale_timeout: float,
+                 warn_confidence: float) -> tuple[DiagnosticStatus, dict[str, str]]:
+    """The node's DiagnosticStatus, and a note per stale topic ({"source": "no new source cloud for 3.1 s"})."""
+    level, notes, stale = DiagnosticStatus.OK, [], {}
+    for topic in (SOURCE, TARGET):
+        silent = s.silent_for(topic, now)
+        if silent > stale_timeout:
+            level = DiagnosticStatus.WARN
+            what = "no" if s.last_arrival[topic] is None else "no new"
+            stale[topic] = f"{what} {topic} cloud for {silent:.1f} s"
+            notes.append(stale[topic])
+    if s.last_outcome.startswith("failed"):
+        level = DiagnosticStatus.WARN
+        notes.append(f"last registration {s.last_outcome}")
+    elif s.last_outcome == "registered with low confidence":
+        level = DiagnosticStatus.WARN
+        notes.append(f"last registration has low confidence ({s.last.get('confidence', float('nan')):.2f} < "
+                     f"warn_confidence {warn_confidence})")
+    dropped, failed = sum(s.dropped.values()), sum(s.failed.values())
+    summary = f"registered {s.registered}, dropped {dropped}, failed {failed}"
+    kv = {
+        "registered": s.registered,
+        "low_confidence": s.low_confidence,
+        "dropped": dropped,
+        "failed": failed,
+        "received.source": s.received[SOURCE],
+        "received.target": s.received[TARGET],
+        "paired": s.paired,
+        "latency_ms.last": 1e3 * s.latency[-1] if s.latency else float("nan"),
+        "latency_ms.median": _median_ms(s.latency),
+        "overhead_ms.median": _median_ms(s.overhead),
+        "callback_ms.median": _median_ms(s.callback),
+        **{f"dropped.{k}": n for k, n in sorted(s.dropped.items())},
+        **{f"failed.{k}": n for k, n in sorted(s.failed.items())},
+        **{f"last.{k}": x for k, x in s.last.items()},
+    }
+    status = DiagnosticStatus(level=level, name=f"{name}: registration", message="; ".join(notes + [summary]),
+                              hardware_id=hardware_id, values=[KeyValue(key=k, value=_fmt(x)) for k, x in kv.items()])
+    return status, stale
+
+
+def _median_ms(values: list[float]) -> float:
+    return 1e3 * float(np.median(values)) if values else float("nan")
+
+
+def _fmt(x: Any) -> str:
+    return f"{x:.4g}" if isinstance(x, float) else str(x)

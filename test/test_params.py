@@ -1,0 +1,107 @@
+"""register_node's parameters are derived from the config dataclasses; config/genreg.yaml is generated from them."""
+
+from __future__ import annotations
+
+import dataclasses
+from pathlib import Path
+
+import pytest
+import yaml
+
+from genreg_core.config import PDSACConfig, RefineConfig, RegistrationConfig, settings
+from genreg_core.errors import ConfigError
+from genreg_core.preprocess import PreprocessConfig
+from genreg_ros import params
+from genreg_ros.config import SETTINGS, NodeConfig, yaml_text
+
+PARAMS_FILE = Path(__file__).resolve().parent.parent / "config" / "genreg.yaml"
+
+
+def _flatten(d: dict, prefix: str = "") -> dict:
+    out = {}
+    for k, v in d.items():
+        out.update(_flatten(v, f"{prefix}{k}.") if isinstance(v, dict) else {f"{prefix}{k}": v})
+    return out
+
+
+def test_params_file_is_the_generated_one():
+    assert PARAMS_FILE.read_text() == yaml_text(), (
+        "config/genreg.yaml is out of date: python -m genreg_ros.config --write-yaml config/genreg.yaml")
+
+
+def test_params_file_names_and_defaults_match_the_dataclasses():
+    doc = yaml.safe_load(PARAMS_FILE.read_text())
+    in_file = _flatten(doc["/**"]["ros__parameters"])
+    assert in_file == {s.name: params.to_ros(s, s.default) for s in SETTINGS}
+    assert all(s.help for s in SETTINGS)
+
+
+def test_node_defaults_are_the_core_defaults_except_refinement():
+    c = NodeConfig()
+    assert c.pdsac == PDSACConfig() and c.preprocess == PreprocessConfig()
+    assert c.refine == dataclasses.replace(RefineConfig(), method="point_to_point", max_iterations=20)
+    assert RefineConfig().method == "none" and RefineConfig().max_iterations == 10  # the API's default
+    core = {s.name: s.default for s in settings(RegistrationConfig)}
+    node = {s.name.removeprefix("registration."): s.default for s in SETTINGS if s.name.startswith("registration.")}
+    assert node == {k: v for k, v in core.items() if "." not in k}
+    assert c.registration_config() == RegistrationConfig(refine=c.refine)
+
+
+def test_ros_values_map_back_to_the_core_configs():
+    values = {"registration.seed": -1, "preprocess.crop_min": [], "preprocess.crop_max": [],
+              "pdsac.num_hypotheses": 64, "refine.method": "point_to_plane", "registration.device": "cpu"}
+    c = params.to_config(values)
+    r = c.registration_config()
+    assert r.seed is None and r.pdsac.num_hypotheses == 64 and r.refine.method == "point_to_plane"
+    assert r.refine.max_iterations == 20 and c.preprocess.crop_min is None
+    c = params.to_config({"preprocess.crop_min": [0.0, 0.0, 0.0], "preprocess.crop_max": [1, 2, 3],
+                          "registration.seed": 7})
+    assert c.preprocess.crop_max == (1.0, 2.0, 3.0) and c.registration_config().seed == 7
+    assert params.ros_values(c)["preprocess.crop_max"] == [1.0, 2.0, 3.0]
+    assert params.ros_values(NodeConfig())["registration.seed"] == 0
+
+
+@pytest.mark.parametrize(("values", "text"), [
+    ({"refine.method": "bogus"}, "refine.method must be one of"),
+    ({"preprocess.min_range": 5.0, "preprocess.max_range": 1.0}, "min_range"),
+    ({"preprocess.crop_min": [1.0, 1.0, 1.0]}, "crop_min and crop_max"),
+    ({"initial_guess": [0.0] * 5}, "initial_guess must have 0, 7 or 16 values"),
+    ({"initial_guess": [0.0] * 7}, "quaternion"),
+    ({"registration.device": "gpu"}, "device"),
+])
+def test_invalid_values_are_named(values, text):
+    with pytest.raises(ConfigError, match=text):
+        params.to_config(values)
+
+
+def test_descriptors_carry_ranges_and_read_only():
+    d = params.descriptor(params.BY_NAME["sync.queue_size"])
+    assert (d.integer_range[0].from_value, d.integer_range[0].to_value) == (1, 100) and not d.read_only
+    assert params.descriptor(params.BY_NAME["model.checkpoint"]).read_only
+    assert params.descriptor(params.BY_NAME["registration.seed"]).integer_range[0].from_value == -1
+    assert "point_to_plane" in params.descriptor(params.BY_NAME["refine.method"]).description
+
+
+@pytest.mark.parametrize(("content", "text"), [
+    ("/**:\n  ros__parameters:\n    registration:\n      passes: 2\n", "unknown parameter 'registration.passes'"),
+    ("/**:\n  ros__parameters:\n    model:\n      device: cpu\n", "did you mean registration.device?"),
+    ("/**:\n  ros__parameters:\n    sync:\n      slop: 1\n", "sync.slop must be a double (write 1.0, not 1)"),
+    ("/**:\n  ros__parameters:\n    preprocess: {min_range: 2.0, max_range: 1.0}\n", "min_range"),
+    ("/other_node:\n  ros__parameters:\n    bogus: 1\n", None),  # another node's entry is not checked
+])
+def test_params_file_check(tmp_path, content, text):
+    path = tmp_path / "p.yaml"
+    path.write_text(content)
+    if text is None:
+        params.check_params_file(str(path), "/register_node")
+        return
+    with pytest.raises(params.ParamError, match=text.replace("(", r"\(").replace(")", r"\)").replace("?", r"\?")):
+        params.check_params_file(str(path), "/register_node")
+    params.check_params_file(str(PARAMS_FILE), "/register_node")
+
+
+def test_node_name_from_arguments():
+    argv = ["node", "--ros-args", "-r", "__ns:=/a/b", "-r", "__ns:=/c", "-r", "__node:=n", "--params-file", "f.yaml"]
+    assert params.node_fqn(argv, "register_node") == "/a/b/n"  # rcl takes the first __ns
+    assert params.node_fqn(["node"], "register_node") == "/register_node"
+    assert params.params_files(argv) == ["f.yaml"] and params.params_files(["node", "--params-file", "x"]) == []
