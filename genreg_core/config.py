@@ -120,6 +120,15 @@ class ModelConfig:
     backbone: str = setting("pointmixer", "pointmixer: GCNN + the paper's two mixer layers; dgcnn: GCNN "
                             "features alone, then a linear layer.", choices=("pointmixer", "dgcnn"))
     attention_dim: int = setting(64, "Query/key width of the soft pointer (genreg).", low=1)
+    point_feature: str = setting("centroid", "Per-point invariant beside the local covariance: centroid (distance "
+                                 "to the cloud's centroid; moves when a cloud is cropped) or knn (mean distance "
+                                 "to the k neighbours; local, crop-robust).", choices=("centroid", "knn"))
+    generation: str = setting("pick", "pick: A_g is the best-matching point of B; neighbours: the match-weighted "
+                              "mean of the pick's generation_k nearest neighbours in B (can leave B's samples; "
+                              "rotation-equivariant by construction).", choices=("pick", "neighbours"))
+    generation_k: int = setting(8, "Neighbours of the pick that generation 'neighbours' mixes.", low=2, high=64)
+    overlap_head: bool = setting(False, "Per-point overlap score (supervised by the true overlap); PDSAC draws "
+                                 "and scores with it.")
     norm: str = setting("group", "Normalisation in the point MLPs.", choices=("none", "group"))
     discriminator_hidden: tuple[int, ...] = setting((64, 128), "Discriminator per-point widths (training only).")
 

@@ -10,6 +10,11 @@ sum_h w_h loss(T_h) passes gradients to the correspondences.
 
 Transforms are 4x4, column convention: dst ~ R src + t.
 
+Overlap weighting (models with an overlap head): with per-correspondence weights o_i in (0, 1], the
+minimal sets are drawn with probability proportional to o (without replacement within a set) and a
+hypothesis scores s_h = sum_i o_i min(|R_h src_i + t_h - dst_i|, tau) / sum_i o_i, so correspondences
+that likely have no counterpart neither seed nor vote for hypotheses.
+
 Combining both directions (the paper's T_est = T_A^-1 T_B is written for row vectors and is
 ambiguous). Column convention: A_g = T_A A maps A's frame into B's, and B_g = T_B B maps B's frame
 into A's. Hence both T_A and T_B^-1 estimate T_BA, the transform from source A to target B, and the
@@ -56,6 +61,15 @@ def sample_minimal_sets(
     return picks
 
 
+def sample_weighted_sets(weights: torch.Tensor, m: int, k: int, generator: torch.Generator | None = None
+                         ) -> torch.Tensor:
+    """(B, m, k) indices, ascending in each set, k distinct points per set drawn with probability
+    proportional to `weights` (B, N) (successive draws without replacement)."""
+    B = weights.shape[0]
+    rows = weights.detach().clamp_min(1e-6).repeat_interleave(m, dim=0)  # (B m, N)
+    return torch.multinomial(rows, k, replacement=False, generator=generator).reshape(B, m, k).sort(dim=-1).values
+
+
 def residuals(T: torch.Tensor, src: torch.Tensor, dst: torch.Tensor) -> torch.Tensor:
     """|R src_i + t - dst_i| for T (..., 4, 4), src/dst (B, N, 3) broadcast over hypothesis dims."""
     return torch.linalg.norm(apply_transform(T, src) - dst, dim=-1)
@@ -83,33 +97,53 @@ def pdsac(
     cfg: PDSACConfig,
     generator: torch.Generator | None = None,
     refit: bool | None = None,
+    weights: torch.Tensor | None = None,
 ) -> PDSACResult:
-    """Estimate dst ~ T src from (B, N, 3) correspondences. Differentiable through `weights`."""
+    """Estimate dst ~ T src from (B, N, 3) correspondences, optionally weighted by per-correspondence
+    overlap `weights` (B, N) (module docstring). Differentiable through the soft selection (and through
+    `weights` in the scores)."""
     B, N, _ = src.shape
-    idx = sample_minimal_sets(B, N, cfg.num_hypotheses, cfg.sample_size, generator).to(src.device)
+    if weights is None:
+        idx = sample_minimal_sets(B, N, cfg.num_hypotheses, cfg.sample_size, generator)
+    else:
+        idx = sample_weighted_sets(weights.cpu(), cfg.num_hypotheses, cfg.sample_size, generator)
+    idx = idx.to(src.device)
     flat = idx.reshape(B, -1, 1).expand(-1, -1, 3)
     s = torch.gather(src, 1, flat).reshape(B, cfg.num_hypotheses, cfg.sample_size, 3)
     d = torch.gather(dst, 1, flat).reshape(B, cfg.num_hypotheses, cfg.sample_size, 3)
     hyps = kabsch(s, d)  # (B, m, 4, 4)
     res = hypothesis_residuals(hyps, src, dst)  # (B, m, N)
-    scores = res.clamp_max(cfg.inlier_threshold).mean(dim=-1)
-    weights = torch.softmax(-scores / cfg.temperature, dim=-1)
+    scores = truncated_score(res, cfg.inlier_threshold, weights)
+    selection = torch.softmax(-scores / cfg.temperature, dim=-1)
     best = scores.argmin(dim=-1)
     T = hyps[torch.arange(B), best]
     inliers = res[torch.arange(B), best] < cfg.inlier_threshold
     if cfg.refit if refit is None else refit:
         T, inliers = refit_on_inliers(T, src, dst, cfg.inlier_threshold)
-    return PDSACResult(T, hyps, scores, weights, inliers)
+    return PDSACResult(T, hyps, scores, selection, inliers)
+
+
+def truncated_score(res: torch.Tensor, threshold: float, weights: torch.Tensor | None = None) -> torch.Tensor:
+    """Mean (or `weights`-weighted mean over the last axis) of residuals truncated at `threshold`:
+    res (..., N), weights broadcasting as (B, 1.., N)."""
+    truncated = res.clamp_max(threshold)
+    if weights is None:
+        return truncated.mean(dim=-1)
+    w = weights.reshape(weights.shape[0], *([1] * (res.dim() - 2)), weights.shape[-1])
+    return (truncated * w).sum(dim=-1) / w.sum(dim=-1).clamp_min(1e-9)
 
 
 def refit_on_inliers(
-    T: torch.Tensor, src: torch.Tensor, dst: torch.Tensor, threshold: float, rounds: int = 2
+    T: torch.Tensor, src: torch.Tensor, dst: torch.Tensor, threshold: float, rounds: int = 2,
+    weights: torch.Tensor | None = None,
 ) -> tuple[torch.Tensor, torch.Tensor]:
-    """Least-squares re-estimate on the inliers of T (a few rounds), keeping T where too few remain."""
+    """Least-squares re-estimate on the inliers of T (a few rounds, inliers weighted by `weights` (B, N)
+    if given), keeping T where too few remain."""
     inliers = residuals(T, src, dst) < threshold
     for _ in range(rounds):
         enough = inliers.sum(dim=-1) >= 3
-        refit = kabsch(src, dst, inliers.to(src.dtype))
+        w = inliers.to(src.dtype) if weights is None else inliers.to(src.dtype) * weights
+        refit = kabsch(src, dst, w)
         T = torch.where(enough[:, None, None], refit, T)
         inliers = residuals(T, src, dst) < threshold
     return T, inliers
@@ -137,19 +171,23 @@ def pdsac_bidirectional(
     b_gen: torch.Tensor,
     cfg: PDSACConfig,
     generator: torch.Generator | None = None,
+    overlap: tuple[torch.Tensor, torch.Tensor] | None = None,
 ) -> tuple[torch.Tensor, PDSACResult, PDSACResult, torch.Tensor]:
-    """One transform source A -> target B from both generated clouds (see module docstring).
+    """One transform source A -> target B from both generated clouds (see module docstring), weighted
+    by the overlap probabilities (o_A (B, N), o_B (B, M)) when given.
 
     Returns (T_est (B, 4, 4) with b ~ T_est a, result A->A_g, result B->B_g, union inlier mask (B, 2N)).
     """
-    res_a = pdsac(a, a_gen, cfg, generator, refit=False)
-    res_b = pdsac(b, b_gen, cfg, generator, refit=False)
+    o_a, o_b = overlap if overlap is not None else (None, None)
+    res_a = pdsac(a, a_gen, cfg, generator, refit=False, weights=o_a)
+    res_b = pdsac(b, b_gen, cfg, generator, refit=False, weights=o_b)
     src, dst = union_correspondences(a, a_gen, b, b_gen)
+    w = None if overlap is None else torch.cat([o_a, o_b], dim=1)
     candidates = torch.stack([res_a.transform, invert_transform(res_b.transform)], dim=1)  # (B, 2, 4, 4)
-    score = residuals(candidates, src[:, None], dst[:, None]).clamp_max(cfg.inlier_threshold).mean(-1)
+    score = truncated_score(residuals(candidates, src[:, None], dst[:, None]), cfg.inlier_threshold, w)
     T = candidates[torch.arange(a.shape[0]), score.argmin(dim=1)]
     if cfg.refit:
-        T, inliers = refit_on_inliers(T, src, dst, cfg.inlier_threshold)
+        T, inliers = refit_on_inliers(T, src, dst, cfg.inlier_threshold, weights=w)
     else:
         inliers = residuals(T, src, dst) < cfg.inlier_threshold
     return T, res_a, res_b, inliers

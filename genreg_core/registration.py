@@ -125,7 +125,7 @@ class Registrar:
         out = self.model.generate(enc, match)  # 4. generate
         t1 = time.perf_counter()
         T, _, _, inliers = pdsac_bidirectional(  # 5. PDSAC
-            a, out.source_generated, b, out.target_generated, self.config.pdsac, generator)
+            a, out.source_generated, b, out.target_generated, self.config.pdsac, generator, out.overlap())
         if timings is not None:
             timings["network"] = timings.get("network", 0.0) + t1 - t0
             timings["pdsac"] = timings.get("pdsac", 0.0) + time.perf_counter() - t1

@@ -208,3 +208,51 @@ def test_model_config_rejects_unknown_choices_and_ranges():
         ModelConfig(architecture="transformer")
     with pytest.raises(ConfigError, match="num_points"):
         ModelConfig(num_points=8)
+
+
+NEW = ModelConfig(**{**SMALL.__dict__, "point_feature": "knn", "generation": "neighbours", "generation_k": 6,
+                     "overlap_head": True})
+
+
+def test_neighbour_generation_is_rotation_equivariant_and_leaves_the_samples():
+    """Rotating and moving B moves A_g the same way (to float precision); A_g is a convex combination of
+    the pick's 6 nearest neighbours in B, so it lies in their hull, not necessarily on a sample."""
+    from scipy.spatial.transform import Rotation
+
+    torch.manual_seed(0)
+    net = GenRegNet(NEW).double().eval()
+    a, b = torch.rand(1, 64, 3, dtype=torch.float64), torch.rand(1, 64, 3, dtype=torch.float64)
+    R = torch.tensor(Rotation.from_euler("xyz", [120, -40, 75], degrees=True).as_matrix())
+    t = torch.tensor([0.3, -1.2, 2.0], dtype=torch.float64)
+    with torch.no_grad():
+        out = net(a, b)
+        moved = net(a, b @ R.T + t)
+    assert torch.allclose(moved.source_generated, out.source_generated @ R.T + t, atol=1e-9)
+    assert torch.allclose(moved.target_generated, out.target_generated, atol=1e-9)  # B_g is in A's frame
+    nearest = torch.cdist(out.source_generated[0], b[0]).amin(-1)
+    assert float(nearest.max()) > 1e-4  # off B's samples somewhere
+    o_a, o_b = out.overlap()
+    assert o_a.shape == (1, 64) and o_b.shape == (1, 64) and ((o_a > 0) & (o_a < 1)).all()
+    with torch.no_grad():
+        o_moved = moved.overlap()[0]
+    assert torch.allclose(o_a, o_moved, atol=1e-9)  # invariant
+
+
+def test_knn_point_feature_ignores_a_crop_elsewhere():
+    """The 'knn' point input is local: points whose neighbourhoods a crop leaves intact keep it, while
+    the distance to the centroid moves."""
+    from genreg_core.model.invariant import invariant_geometry, point_inputs
+
+    torch.manual_seed(0)
+    pts = torch.rand(1, 400, 3, dtype=torch.float64)
+    keep = pts[0, :, 0] < 0.6
+    inner = pts[0, keep, 0] < 0.4  # far from the cut: the same 8 neighbours
+
+    def inputs(cloud: torch.Tensor, kind: str) -> torch.Tensor:
+        cloud = cloud - cloud.mean(1, keepdim=True)
+        edge, point, _ = invariant_geometry(cloud, knn_indices(cloud, 8))
+        return point_inputs(point, edge, kind, 10.0)[0]
+
+    full, part = pts, pts[:, keep]
+    assert torch.allclose(inputs(full, "knn")[keep][inner], inputs(part, "knn")[inner], atol=1e-9)
+    assert not torch.allclose(inputs(full, "centroid")[keep][inner], inputs(part, "centroid")[inner], atol=1e-3)

@@ -113,3 +113,26 @@ def test_stacked_hypothesis_residuals_equal_the_broadcast_form():
     exact = apply_transform(T[:, :1], src[:, None])[:, 0].detach()
     hypothesis_residuals(T[:, :1], src, exact).sum().backward()
     assert torch.isfinite(src.grad).all()
+
+
+def test_overlap_weights_steer_sampling_and_scoring_past_a_majority_of_outliers():
+    """80 % outliers that agree on a wrong motion outvote the true one unweighted; weights that mark the
+    true correspondences make PDSAC recover the true motion, and draw only weighted points."""
+    from genreg_core.pdsac import sample_weighted_sets
+
+    rng = np.random.default_rng(5)
+    src = torch.tensor(rng.uniform(size=(1, 200, 3)))
+    T_true = torch.tensor(random_transform(rng, 40, 0.3))[None]
+    T_wrong = torch.tensor(random_transform(rng, 40, 0.3))[None]
+    dst = apply_transform(T_wrong, src)
+    dst[:, :40] = apply_transform(T_true, src[:, :40])
+    weights = torch.full((1, 200), 1e-6, dtype=torch.float64)
+    weights[:, :40] = 1.0
+    cfg = PDSACConfig(num_hypotheses=64)
+    unweighted = pdsac(src, dst, cfg, torch.Generator().manual_seed(0)).transform
+    weighted = pdsac(src, dst, cfg, torch.Generator().manual_seed(0), weights=weights).transform
+    assert torch.allclose(unweighted, T_wrong, atol=1e-6)
+    assert torch.allclose(weighted, T_true, atol=1e-6)
+    sets = sample_weighted_sets(weights, 500, 4, torch.Generator().manual_seed(1))
+    assert sets.shape == (1, 500, 4) and int(sets.max()) < 40
+    assert (sets[..., 1:] > sets[..., :-1]).all()  # distinct, ascending

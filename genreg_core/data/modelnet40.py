@@ -9,6 +9,12 @@ test.npz and must never be trained on.
 Pairs (`ModelNetPairs`): the shape is put into the unit box [0, 1]^3 once; source and target are two
 independent draws of N of its points; `transform` is T_target_source, i.e. target = R source + t
 (x' = R x + t on column vectors, `geometry.apply_transform` on rows). Units: unit-box units.
+
+Partial-to-partial pairs (`rpmnet_crop_pair`, variant "crop"), RPM-Net's protocol at the stored
+unit-sphere scale: source and target are two independent 768-point subsets of the 1024 points, each
+cropped to 70 % by its own random plane (the points with the largest projection on a random unit
+direction, measured from the centroid), Gaussian noise sigma 0.01 clipped at 0.05 on both, rotation by
+Euler angles each uniform in [0, 45] deg, translation uniform in [-0.5, 0.5] per axis.
 """
 
 from __future__ import annotations
@@ -18,17 +24,24 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+from scipy.spatial.transform import Rotation
 from torch.utils.data import Dataset
 
 from genreg_core.config import data_root
 from genreg_core.errors import ConfigError, DataNotFoundError
-from genreg_core.geometry import apply_transform, random_transform, unit_box_normalization
+from genreg_core.geometry import (
+    apply_transform,
+    make_transform,
+    normalize_pair,
+    random_transform,
+    unit_box_normalization,
+)
 
 NUM_SEEN = 20
 POINTS_PER_SHAPE = 1024
 SPLITS = ("train", "test")
 CATEGORY_SETS = ("seen", "unseen", "all")
-VARIANTS = ("clean", "noise", "partial")
+VARIANTS = ("clean", "noise", "partial", "crop")
 
 
 @dataclass(frozen=True)
@@ -95,6 +108,33 @@ def load_modelnet40(split: str, categories: str = "seen", root: str | Path | Non
     return ModelNetShapes(points=points, labels=labels[keep], names=names, class_names=class_names)
 
 
+def crop_by_plane(points: np.ndarray, keep: float, rng: np.random.Generator) -> np.ndarray:
+    """The `keep` share of `points` with the largest projection on a random unit direction (from the
+    centroid): the part of the shape on one side of a random plane."""
+    direction = rng.normal(size=3)
+    direction /= np.linalg.norm(direction)
+    projection = (points - points.mean(axis=0)) @ direction
+    count = int(np.ceil(keep * len(points)))
+    return points[np.sort(np.argsort(-projection, kind="stable")[:count])]
+
+
+def rpmnet_crop_pair(
+    shape: np.ndarray, rng: np.random.Generator, subset: int = 768, keep: float = 0.7,
+    noise_sigma: float = 0.01, noise_clip: float = 0.05, max_angle_deg: float = 45.0,
+    max_translation: float = 0.5,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """One partial-to-partial pair of a unit-sphere shape (module docstring): (source, target,
+    T_target_source), float64, at the shape's stored scale."""
+    clouds = []
+    for _ in range(2):
+        cloud = crop_by_plane(shape[rng.permutation(len(shape))[:subset]], keep, rng)
+        clouds.append(cloud + np.clip(rng.normal(0.0, noise_sigma, cloud.shape), -noise_clip, noise_clip))
+    angles = rng.uniform(0.0, max_angle_deg, size=3)
+    T = make_transform(Rotation.from_euler("xyz", angles, degrees=True).as_matrix(),
+                       rng.uniform(-max_translation, max_translation, size=3))
+    return clouds[0], apply_transform(T, clouds[1]), T
+
+
 class ModelNetPairs(Dataset):
     """Synthetic registration pairs from ModelNet40 shapes (paper Sec. 4.1); numpy in, numpy float32 out.
 
@@ -104,6 +144,9 @@ class ModelNetPairs(Dataset):
     T = `random_transform(rng, max_angle_deg, max_translation)`.
     Variants (target only): 'noise' adds N(0, noise_sigma^2) per coordinate; 'partial' first drops the
     `partial_ratio` of the shape's points with the largest x (object frame, before T), then draws N.
+    Variant 'crop' (both clouds): `rpmnet_crop_pair` at the stored scale (its own rotation and
+    translation ranges), then normalised like the registration pipeline does (the source fills the unit
+    box, `geometry.normalize_pair`) and subsampled to N.
     A tuple of variants picks one per item. Item i uses `np.random.default_rng((seed, epoch, i))`;
     `set_epoch` changes the draws, and `max_angle_deg` may be changed between epochs (curriculum).
     With DataLoader workers, call `set_epoch` before creating the iterator (no persistent workers).
@@ -162,6 +205,12 @@ class ModelNetPairs(Dataset):
         )
 
         shape = self.shapes.points[index].astype(np.float64)
+        if variant == "crop":
+            src, tgt, T = rpmnet_crop_pair(shape, rng)
+            src_n, tgt_n, T_n, _, _ = normalize_pair(src, tgt, T)
+            pick = [rng.choice(len(c), self.num_points, replace=len(c) < self.num_points) for c in (src_n, tgt_n)]
+            return {"source": src_n[pick[0]], "target": tgt_n[pick[1]], "transform": T_n.astype(np.float32),
+                    "label": int(self.shapes.labels[index]), "variant": variant}
         offset, scale = unit_box_normalization(shape)
         shape = (shape - offset) / scale
         T = random_transform(rng, self.max_angle_deg, self.max_translation)

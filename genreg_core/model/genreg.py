@@ -9,12 +9,16 @@ frame; PDSAC turns the pairs (A_i, A_g,i) and (B_g,i, B_i) into one transform. T
    mixer layers (backbone "pointmixer"; "dgcnn": a linear layer instead) give per-point features F.
 2. interact (the feature interaction, our soft pointer): each point of A attends to B's points by the
    cosine of learned, per-cloud-centred query/key features times a learned sharpness (and B to A).
-3. generate: A_g,i is the best-matching point of B (hard pick; training passes gradients through the
-   soft mean, straight-through), moved back by B's centroid; likewise B_g.
+   With `overlap_head`, an MLP on each point's features, its best match score and its cycle distance
+   (how far the pick of its pick lands from it) scores whether the point has a counterpart at all.
+3. generate: generation "pick": A_g,i is the best-matching point of B (hard pick; training passes
+   gradients through the soft mean, straight-through); "neighbours": the match-weighted mean of the
+   pick's nearest neighbours in B, so A_g can fall between B's samples. Moved back by B's centroid;
+   likewise B_g.
 
 Because every input to the match is invariant, the generated correspondences do not depend on the
-rotation between the clouds. A_g is always one of B's own sample points, so the estimate is as fine as
-B's sampling (MODEL_CARD.md); the paper's decoder lives in `genreg_core.model.paper`.
+rotation between the clouds, and A_g (a convex combination of B's points) moves with B: equivariant by
+construction. The paper's decoder lives in `genreg_core.model.paper`.
 """
 
 from __future__ import annotations
@@ -25,8 +29,9 @@ import torch
 from torch import nn
 
 from genreg_core.config import ModelConfig
-from genreg_core.model.invariant import InvariantEncoder
-from genreg_core.model.layers import centroid, zero_last_layer
+from genreg_core.model.gcnn import knn_indices
+from genreg_core.model.invariant import InvariantEncoder, gather_neighbours
+from genreg_core.model.layers import centroid, mlp, zero_last_layer
 from genreg_core.model.mixer import MixerLayer
 
 
@@ -38,6 +43,12 @@ class GenRegOutput:
     target_generated: torch.Tensor  # B_g (B, N, 3), in A's frame
     # soft pointer only: log match weights, A's points onto B's (B, N, M) and B's onto A's (B, M, N)
     match_logits: tuple[torch.Tensor, torch.Tensor] | None = None
+    # overlap head only: per-point overlap logits of A (B, N) and B (B, M)
+    overlap_logits: tuple[torch.Tensor, torch.Tensor] | None = None
+
+    def overlap(self) -> tuple[torch.Tensor, torch.Tensor] | None:
+        """Overlap probabilities of A's and B's points, or None without an overlap head."""
+        return None if self.overlap_logits is None else tuple(torch.sigmoid(x) for x in self.overlap_logits)
 
 
 @dataclass
@@ -58,7 +69,7 @@ class PointMixerEncoder(nn.Module):
 
     def __init__(self, cfg: ModelConfig) -> None:
         super().__init__()
-        self.gcnn = InvariantEncoder(cfg.gcnn_channels, cfg.k_neighbors, norm=cfg.norm)
+        self.gcnn = InvariantEncoder(cfg.gcnn_channels, cfg.k_neighbors, norm=cfg.norm, point_feature=cfg.point_feature)
         if cfg.backbone == "dgcnn":
             self.mixer1: nn.Module = nn.Linear(cfg.gcnn_channels, cfg.feature_dim)
             self.mixer2: nn.Module = nn.Identity()
@@ -92,6 +103,16 @@ class SoftPointer(nn.Module):
         return torch.log_softmax((q @ k.transpose(1, 2)) * self.log_sharpness.exp(), dim=-1)
 
 
+@dataclass
+class Match:
+    """Stage 2 output: log match weights A -> B (B, N, M) and B -> A (B, M, N), overlap logits or None."""
+
+    log_w_a: torch.Tensor
+    log_w_b: torch.Tensor
+    overlap_a: torch.Tensor | None = None  # (B, N)
+    overlap_b: torch.Tensor | None = None  # (B, M)
+
+
 def pick(log_w: torch.Tensor, y: torch.Tensor, straight_through: bool) -> torch.Tensor:
     """The best-matching point of y (B, M, 3) for each row of log_w (B, N, M): a real point, since a soft
     mean of several candidates lands between them, off the surface. With `straight_through` (training)
@@ -103,6 +124,38 @@ def pick(log_w: torch.Tensor, y: torch.Tensor, straight_through: bool) -> torch.
     return best + (soft - soft.detach())
 
 
+def neighbour_mix(log_w: torch.Tensor, y: torch.Tensor, k: int) -> torch.Tensor:
+    """For each row of log_w (B, N, M): the mean of the best match's k nearest neighbours in y (B, M, 3),
+    the best included, weighted by their renormalised match weights. A convex combination of y's points
+    chosen by invariant quantities, so it moves with y under any rigid motion."""
+    knn = knn_indices(y, k)  # (B, M, k), nearest first (the point itself)
+    candidates = torch.gather(knn, 1, log_w.argmax(dim=-1, keepdim=True).expand(-1, -1, k))  # (B, N, k)
+    weights = torch.softmax(torch.gather(log_w, 2, candidates), dim=-1)
+    points = gather_neighbours(y, candidates)  # (B, N, k, 3)
+    return (weights[..., None] * points).sum(dim=2)
+
+
+def cycle_distance(log_w_x: torch.Tensor, log_w_y: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
+    """|x_i - x_i'| where i' is the pick of the pick of x_i (x -> y -> x): zero for consistent matches.
+    (B, N, M), (B, M, N), (B, N, 3) -> (B, N)."""
+    back = torch.gather(log_w_y.argmax(dim=-1), 1, log_w_x.argmax(dim=-1))  # (B, N)
+    return torch.linalg.norm(x - torch.gather(x, 1, back[..., None].expand(-1, -1, 3)), dim=-1)
+
+
+class OverlapHead(nn.Module):
+    """Overlap logit of each point from its features, its best match score (max log weight, shifted by
+    log M) and its cycle distance (times `scale`, unit-box inputs)."""
+
+    def __init__(self, channels: int, hidden: int = 64, scale: float = 10.0) -> None:
+        super().__init__()
+        self.scale = scale
+        self.mlp = mlp((channels + 2, hidden, 1))
+
+    def forward(self, f: torch.Tensor, log_w: torch.Tensor, cycle: torch.Tensor) -> torch.Tensor:
+        best = log_w.amax(dim=-1, keepdim=True) + torch.log(torch.tensor(float(log_w.shape[-1])))
+        return self.mlp(torch.cat([f, best, self.scale * cycle[..., None]], dim=-1))[..., 0]
+
+
 class GenRegNet(nn.Module):
     """The generator. `forward(a, b)` -> GenRegOutput. Inputs must hold exactly cfg.num_points points."""
 
@@ -111,6 +164,7 @@ class GenRegNet(nn.Module):
         self.config = cfg or ModelConfig()
         self.encoder = PointMixerEncoder(self.config)
         self.pointer = SoftPointer(self.config.feature_dim, self.config.attention_dim)
+        self.overlap = OverlapHead(self.config.feature_dim) if self.config.overlap_head else None
 
     def encode(self, a: torch.Tensor, b: torch.Tensor) -> Encoded:
         """Stage 1: centre both clouds, per-point invariant features (one batched pass for both)."""
@@ -122,16 +176,24 @@ class GenRegNet(nn.Module):
         f_a, f_b = self.encoder(torch.cat([a0, b0], dim=0)).chunk(2, dim=0)
         return Encoded(a0, b0, c_a, c_b, f_a, f_b)
 
-    def interact(self, enc: Encoded) -> tuple[torch.Tensor, torch.Tensor]:
-        """Stage 2: log match weights A -> B (B, N, M) and B -> A (B, M, N)."""
-        return self.pointer(enc.f_a, enc.f_b), self.pointer(enc.f_b, enc.f_a)
+    def interact(self, enc: Encoded) -> Match:
+        """Stage 2: log match weights both ways and, with the overlap head, per-point overlap logits."""
+        log_w_a, log_w_b = self.pointer(enc.f_a, enc.f_b), self.pointer(enc.f_b, enc.f_a)
+        if self.overlap is None:
+            return Match(log_w_a, log_w_b)
+        return Match(log_w_a, log_w_b,
+                     self.overlap(enc.f_a, log_w_a, cycle_distance(log_w_a, log_w_b, enc.a0)),
+                     self.overlap(enc.f_b, log_w_b, cycle_distance(log_w_b, log_w_a, enc.b0)))
 
-    def generate(self, enc: Encoded, match: tuple[torch.Tensor, torch.Tensor]) -> GenRegOutput:
+    def generate(self, enc: Encoded, match: Match) -> GenRegOutput:
         """Stage 3: A_g (A in B's frame) and B_g (B in A's frame) from the matches."""
-        log_w_a, log_w_b = match
-        a_gen = pick(log_w_a, enc.b0, self.training) + enc.c_b
-        b_gen = pick(log_w_b, enc.a0, self.training) + enc.c_a
-        return GenRegOutput(a_gen, b_gen, match)
+        if self.config.generation == "neighbours":
+            k = self.config.generation_k
+            a_gen, b_gen = neighbour_mix(match.log_w_a, enc.b0, k), neighbour_mix(match.log_w_b, enc.a0, k)
+        else:
+            a_gen, b_gen = pick(match.log_w_a, enc.b0, self.training), pick(match.log_w_b, enc.a0, self.training)
+        overlap = None if match.overlap_a is None else (match.overlap_a, match.overlap_b)
+        return GenRegOutput(a_gen + enc.c_b, b_gen + enc.c_a, (match.log_w_a, match.log_w_b), overlap)
 
     def forward(self, a: torch.Tensor, b: torch.Tensor) -> GenRegOutput:
         enc = self.encode(a, b)

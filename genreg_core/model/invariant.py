@@ -8,8 +8,9 @@ wherever the surfaces agree, and matching them finds correspondences at any rota
 - per edge (i, j), j among the k nearest neighbours of i, with d = x_j - x_i and unoriented local
   normals n_i, n_j (smallest eigenvector of the neighbourhood covariance): the point-pair feature
   (|d|, |n_i . d^|, |n_j . d^|, |n_i . n_j|) (PPF, as in PPFNet / RPM-Net, sign-free);
-- per point: the square roots of the neighbourhood covariance eigenvalues (local shape) and the
-  distance to the cloud's centroid (inputs are centred).
+- per point: the square roots of the neighbourhood covariance eigenvalues (local shape) and either
+  the distance to the cloud's centroid (inputs are centred; `point_feature="centroid"`) or the mean
+  distance to the k neighbours (`"knn"`: local, so cropping the cloud elsewhere leaves it unchanged).
 
 Edge MLP + max over neighbours, then one edge convolution in feature space on the same graph (two
 hops of context). Output (B, N, C). Geometry is computed without gradient: the inputs are data.
@@ -76,13 +77,24 @@ def invariant_geometry(
     return edge, point, normals
 
 
+def point_inputs(point: torch.Tensor, edge: torch.Tensor, kind: str, scale: float) -> torch.Tensor:
+    """The stem's per-point inputs in network units (B, N, 4): the covariance eigenvalue roots and either
+    the distance to the centroid (`kind` "centroid") or the mean distance to the k neighbours ("knn"),
+    from `invariant_geometry`'s point (B, N, 4) and edge (B, N, k, 4) features."""
+    last = point[..., 3:] * scale / 5.0
+    if kind == "knn":
+        last = edge[..., 0].mean(dim=-1, keepdim=True) * scale
+    return torch.cat([point[..., :3] * scale, last], dim=-1)
+
+
 class PPFStem(nn.Module):
     """First stage of the invariant encoders: PPF edge MLP -> max over k, point invariants appended:
     (B, N, 3) centred cloud -> per-point features (B, N, 64), the kNN graph and the normals."""
 
-    def __init__(self, k: int, norm: str = "group", scale: float = 10.0) -> None:
+    def __init__(self, k: int, norm: str = "group", scale: float = 10.0, point_feature: str = "centroid") -> None:
         super().__init__()
         self.k = k
+        self.point_feature = point_feature
         self.scale = scale  # lengths are multiplied by this (unit-box inputs: spacing ~0.05 -> 0.5)
         self.edge_mlp = point_mlp((4, 32, 64), norm=norm)
         self.point_mlp = point_mlp((64 + 4, 64), norm=norm)
@@ -94,8 +106,8 @@ class PPFStem(nn.Module):
     def stem(self, points: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         neighbours = knn_indices(points, self.k)
         edge, point, normals = invariant_geometry(points, neighbours)
+        point = point_inputs(point, edge, self.point_feature, self.scale)
         edge = self.scaled(edge)
-        point = torch.cat([point[..., :3] * self.scale, point[..., 3:] * self.scale / 5.0], dim=-1)
         B, N, k, _ = edge.shape
         h = self.edge_mlp(edge.reshape(B, N * k, 4).transpose(1, 2))  # (B, 64, N k)
         h = h.reshape(B, -1, N, k).amax(dim=-1)  # (B, 64, N)
@@ -107,8 +119,9 @@ class InvariantEncoder(PPFStem):
     """PPF stem, then an edge convolution in feature space on the same graph: (B, N, 3) centred cloud
     -> (B, N, out_channels), unchanged by rotating the input."""
 
-    def __init__(self, out_channels: int, k: int, norm: str = "group", scale: float = 10.0) -> None:
-        super().__init__(k, norm, scale)
+    def __init__(self, out_channels: int, k: int, norm: str = "group", scale: float = 10.0,
+                 point_feature: str = "centroid") -> None:
+        super().__init__(k, norm, scale, point_feature)
         self.context = EdgeConv(64, out_channels, k, norm=norm)
 
     def forward(self, points: torch.Tensor) -> torch.Tensor:

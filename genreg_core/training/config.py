@@ -14,6 +14,7 @@ from genreg_core.config import ModelConfig, PDSACConfig, _check, from_dict
 class DataConfig:
     dataset: str = "modelnet40"  # "modelnet40" or "7scenes"
     variants: tuple[str, ...] = ("clean", "noise", "partial")  # mixed per item (ModelNet40)
+    validation_variant: str = "clean"  # ModelNet40 validation pairs (seen-category test split): clean, crop, ...
     pair_modes: tuple[str, ...] = ("fmr", "frames")  # 7-Scenes: FMR-style and real frame pairs
     frame_gaps: tuple[int, ...] = (1, 5, 10)  # 7-Scenes real pairs (i, i+g)
     max_angle_deg: float = 45.0  # the paper's rotation range
@@ -37,6 +38,8 @@ class LossWeights:
     correspondence: float = 0.0
     matching: float = 0.0  # our lever: soft-pointer cross-entropy (architecture "genreg" only)
     matching_sigma: float = 0.05  # width of the true soft match, unit-box units (~ the point spacing)
+    overlap: float = 0.0  # our lever: overlap-head binary cross-entropy (models with an overlap head)
+    overlap_radius: float = 0.05  # a point overlaps when the other cloud has a point this close (unit box)
 
 
 @dataclass(frozen=True)

@@ -25,7 +25,7 @@ def build_pair_sets(cfg: TrainConfig) -> tuple[Any, Any]:
             max_angle_deg=d.max_angle_deg, max_translation=d.max_translation, seed=cfg.seed,
         )
         val = ModelNetPairs(
-            load_modelnet40("test", "seen", d.root), num_points=n, variant="clean",
+            load_modelnet40("test", "seen", d.root), num_points=n, variant=d.validation_variant,
             max_angle_deg=d.max_angle_deg, max_translation=d.max_translation, seed=cfg.seed + 1,
         )
         return train, val

@@ -8,6 +8,9 @@
 - correspondence (our lever, weight 0 in the paper's recipe): mean |A_g,i - T_gt A_i|
 - matching (our lever, architecture "genreg" only): cross-entropy of the pointer's weights against
   the true soft match
+- overlap (our lever, models with an overlap head): binary cross-entropy of the overlap logits against
+  the true overlap (a counterpart within `overlap_radius` at the true pose)
+Correspondence and matching terms count only points with a true counterpart (the overlap).
 """
 
 from __future__ import annotations
@@ -69,13 +72,30 @@ def expected_transformation_loss(hypotheses: torch.Tensor, weights: torch.Tensor
     return (weights * transformation_error(hypotheses, T_gt[:, None])).sum(dim=-1)
 
 
-def matching_loss(log_weights: torch.Tensor, moved: torch.Tensor, other: torch.Tensor, sigma: float) -> torch.Tensor:
+def matching_loss(log_weights: torch.Tensor, moved: torch.Tensor, other: torch.Tensor, sigma: float,
+                  mask: torch.Tensor | None = None) -> torch.Tensor:
     """Cross-entropy of a soft pointer's weights (B, N, M, log) against the true soft match: point i,
     moved into the other cloud's frame by the ground truth (`moved`, (B, N, 3)), should pick the
-    points of `other` (B, M, 3) near it, p_ij ~ exp(-|moved_i - other_j|^2 / (2 sigma^2)). -> (B,)."""
+    points of `other` (B, M, 3) near it, p_ij ~ exp(-|moved_i - other_j|^2 / (2 sigma^2)). Averaged over
+    the points where `mask` (B, N) holds (all if None). -> (B,)."""
     with torch.no_grad():
         target = torch.softmax(-torch.cdist(moved, other).square() / (2.0 * sigma**2), dim=-1)
-    return -(target * log_weights).sum(-1).mean(-1)
+    return masked_mean(-(target * log_weights).sum(-1), mask)
+
+
+def masked_mean(values: torch.Tensor, mask: torch.Tensor | None = None) -> torch.Tensor:
+    """Mean of (B, N) values over the last axis where `mask` holds (all if None); 0 where none does."""
+    if mask is None:
+        return values.mean(-1)
+    m = mask.to(values.dtype)
+    return (values * m).sum(-1) / m.sum(-1).clamp_min(1.0)
+
+
+@torch.no_grad()
+def overlap_labels(moved: torch.Tensor, other: torch.Tensor, radius: float) -> torch.Tensor:
+    """(B, N) bool: point i, moved into the other cloud's frame by the ground truth, has a point of
+    `other` (B, M, 3) within `radius`: it has a counterpart (the overlap)."""
+    return torch.cdist(moved, other).amin(dim=-1) < radius
 
 
 def gan_discriminator_loss(real_logits: torch.Tensor, fake_logits: torch.Tensor) -> torch.Tensor:

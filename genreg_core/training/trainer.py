@@ -23,6 +23,7 @@ from tqdm import tqdm
 
 from genreg_core.checkpoint import load_checkpoint, save_checkpoint
 from genreg_core.config import RegistrationConfig
+from genreg_core.errors import CheckpointError
 from genreg_core.geometry import apply_transform, invert_transform
 from genreg_core.metrics import chamfer_distance, rotation_error_deg
 from genreg_core.model import GenRegOutput, build_model
@@ -37,7 +38,8 @@ INFERENCE = RegistrationConfig()  # validation measures what the registration pi
 
 LOG_FIELDS = (
     "iteration", "generator_steps", "elapsed_s", "lr", "max_angle_deg", "loss", "absolute", "relative",
-    "cycle", "adversarial", "transformation", "correspondence", "matching", "discriminator", "skipped_steps",
+    "cycle", "adversarial", "transformation", "correspondence", "matching", "overlap", "discriminator",
+    "skipped_steps",
     "val_re_mean", "val_re_median", "val_te_mean", "val_cd_mean",
 )
 
@@ -92,8 +94,18 @@ class Trainer:
             self._load_state(self.out_dir / "last.ckpt")
             self._truncate_log()
         elif cfg.init_from:
-            warm, _ = load_checkpoint(cfg.init_from, num_points=cfg.model.num_points)
-            self.generator.load_state_dict(warm.state_dict())
+            self._warm_start(cfg.init_from)
+
+    def _warm_start(self, name_or_path: str) -> None:
+        """Generator weights from a checkpoint (fresh optimiser). Modules the checkpoint lacks (e.g. a new
+        overlap head) keep their initialisation; a weight of another shape or an unknown one is an error."""
+        warm, _ = load_checkpoint(name_or_path, num_points=self.cfg.model.num_points)
+        result = self.generator.load_state_dict(warm.state_dict(), strict=False)
+        if result.unexpected_keys:
+            raise CheckpointError(f"init_from {name_or_path}: weights this model does not have: "
+                                  f"{result.unexpected_keys[:5]}")
+        if self.is_main and result.missing_keys:
+            print(f"init_from {name_or_path}: newly initialised: {sorted({k.split('.')[0] for k in result.missing_keys})}")
 
     # ----------------------------------------------------------------- schedule
     def _lr_factor(self, it: int) -> float:
@@ -165,24 +177,31 @@ class Trainer:
             -fake_logits.mean() if cfg.gan.mode == "wgan-gp" else L.gan_generator_loss(fake_logits)
         )
         gen = torch.Generator().manual_seed(cfg.seed * 1_000_003 + it)
-        res_a = pdsac(a, a_g, cfg.pdsac, gen, refit=False)
-        res_b = pdsac(b, b_g, cfg.pdsac, gen, refit=False)
         T_inv = invert_transform(T_gt)
+        a_true, b_true = apply_transform(T_gt, a), apply_transform(T_inv, b)  # A in B's frame, B in A's
+        over_a = L.overlap_labels(a_true, b, cfg.loss.overlap_radius)  # points with a counterpart
+        over_b = L.overlap_labels(b_true, a, cfg.loss.overlap_radius)
+        o_a, o_b = out.overlap() or (None, None)
+        res_a = pdsac(a, a_g, cfg.pdsac, gen, refit=False, weights=o_a)
+        res_b = pdsac(b, b_g, cfg.pdsac, gen, refit=False, weights=o_b)
         terms["transformation"] = (
             L.expected_transformation_loss(res_a.hypotheses, res_a.weights, T_gt)
             + L.expected_transformation_loss(res_b.hypotheses, res_b.weights, T_inv)
         ).mean()
-        terms["correspondence"] = (
-            (a_g - apply_transform(T_gt, a)).abs().sum(-1).mean()
-            + (b_g - apply_transform(T_inv, b)).abs().sum(-1).mean()
-        )
+        terms["correspondence"] = (L.masked_mean((a_g - a_true).abs().sum(-1), over_a)
+                                   + L.masked_mean((b_g - b_true).abs().sum(-1), over_b)).mean()
         terms["matching"] = zero
         if cfg.loss.matching > 0 and out.match_logits is not None:
             log_w_a, log_w_b = out.match_logits
             c_a, c_b = a.mean(1, keepdim=True), b.mean(1, keepdim=True)  # the pointer works on centred clouds
             sigma = cfg.loss.matching_sigma
-            terms["matching"] = (L.matching_loss(log_w_a, apply_transform(T_gt, a) - c_b, b - c_b, sigma)
-                                 + L.matching_loss(log_w_b, apply_transform(T_inv, b) - c_a, a - c_a, sigma)).mean()
+            terms["matching"] = (L.matching_loss(log_w_a, a_true - c_b, b - c_b, sigma, over_a)
+                                 + L.matching_loss(log_w_b, b_true - c_a, a - c_a, sigma, over_b)).mean()
+        terms["overlap"] = zero
+        if out.overlap_logits is not None:
+            logit_a, logit_b = out.overlap_logits
+            terms["overlap"] = (nn.functional.binary_cross_entropy_with_logits(logit_a, over_a.to(a.dtype))
+                                + nn.functional.binary_cross_entropy_with_logits(logit_b, over_b.to(b.dtype)))
         return terms
 
     def discriminator_update(self, real: torch.Tensor, fake: torch.Tensor) -> float:
