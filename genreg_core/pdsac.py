@@ -70,6 +70,11 @@ def sample_weighted_sets(weights: torch.Tensor, m: int, k: int, generator: torch
     return torch.multinomial(rows, k, replacement=False, generator=generator).reshape(B, m, k).sort(dim=-1).values
 
 
+def seeded_generator(seed: int | None) -> torch.Generator | None:
+    """The random generator PDSAC draws from: seeded (deterministic), or None for fresh randomness."""
+    return torch.Generator().manual_seed(seed) if seed is not None else None
+
+
 def residuals(T: torch.Tensor, src: torch.Tensor, dst: torch.Tensor) -> torch.Tensor:
     """|R src_i + t - dst_i| for T (..., 4, 4), src/dst (B, N, 3) broadcast over hypothesis dims."""
     return torch.linalg.norm(apply_transform(T, src) - dst, dim=-1)

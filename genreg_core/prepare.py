@@ -86,6 +86,13 @@ class PreparedPair:
         """A normalised-frame estimate (b ~ T_n a) as the input's target_from_source."""
         return denormalize_transform(T_n, self.offset, self.scale) @ self.init
 
+    def to_normalized(self, T: np.ndarray) -> np.ndarray:
+        """An input-units target_from_source in this pair's normalised frame (inverse of `to_input_units`):
+        S T init^-1 S^-1 with the similarity S x = (x - offset) / scale."""
+        S = np.diag([1.0 / self.scale] * 3 + [1.0])
+        S[:3, 3] = -np.asarray(self.offset) / self.scale
+        return S @ T @ np.linalg.inv(self.init) @ np.linalg.inv(S)
+
     def points_to_input_units(self, points_n: np.ndarray) -> np.ndarray:
         """Normalised points back to input units (the similarity only; no guess)."""
         return points_n * self.scale + self.offset

@@ -29,7 +29,7 @@ import torch
 from genreg_core.checkpoint import load_checkpoint
 from genreg_core.config import RegistrationConfig
 from genreg_core.geometry import apply_transform
-from genreg_core.pdsac import pdsac_bidirectional, union_inlier_share
+from genreg_core.pdsac import pdsac_bidirectional, seeded_generator, union_inlier_share
 from genreg_core.prepare import PreparedPair, prepare_pair
 from genreg_core.refine import guard_icp, refine
 from genreg_core.score import confidence, fitness_distance, overlap_fitness
@@ -101,7 +101,7 @@ class Registrar:
             return []
         a = torch.from_numpy(np.stack([p.a for p in prepared])).to(cfg.device)
         b = torch.from_numpy(np.stack([p.b for p in prepared])).to(cfg.device)
-        gen = torch.Generator().manual_seed(cfg.seed) if cfg.seed is not None else None
+        gen = seeded_generator(cfg.seed)
         stages: dict[str, float] = {}
         est = self.estimate(a, b, gen, stages)  # 2.-5. encode, interact, generate, PDSAC
         shared = {name: seconds / len(prepared) for name, seconds in stages.items()}

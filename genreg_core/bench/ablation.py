@@ -55,7 +55,7 @@ from genreg_core.bench.datasets import (
     pair_truth,
     plan_suite,
 )
-from genreg_core.bench.methods import DEFAULT_CHECKPOINTS, MethodOutput, load_each, pdsac_generator
+from genreg_core.bench.methods import DEFAULT_CHECKPOINTS, MethodOutput, load_each
 from genreg_core.bench.runner import (
     BenchRun,
     dataset_info,
@@ -67,7 +67,13 @@ from genreg_core.bench.runner import (
 from genreg_core.config import ModelConfig, PDSACConfig, RegistrationConfig
 from genreg_core.geometry import apply_transform
 from genreg_core.metrics import chamfer_distance
-from genreg_core.pdsac import pdsac_bidirectional, refit_on_inliers, union_correspondences, union_inlier_share
+from genreg_core.pdsac import (
+    pdsac_bidirectional,
+    refit_on_inliers,
+    seeded_generator,
+    union_correspondences,
+    union_inlier_share,
+)
 from genreg_core.prepare import PreparedPair
 from genreg_core.registration import Registrar
 
@@ -130,7 +136,7 @@ Solver = Callable[[Correspondences, PDSACConfig, int | None], np.ndarray]  # -> 
 def solve_pdsac(c: Correspondences, cfg: PDSACConfig, seed: int | None) -> np.ndarray:
     """The API's solver: `pdsac_bidirectional`, hypotheses drawn from a generator seeded like `Registrar`."""
     with torch.no_grad():
-        T, *_ = pdsac_bidirectional(c.a, c.a_gen, c.b, c.b_gen, cfg, pdsac_generator(seed))
+        T, *_ = pdsac_bidirectional(c.a, c.a_gen, c.b, c.b_gen, cfg, seeded_generator(seed))
     return T[0].double().numpy()
 
 
@@ -175,18 +181,10 @@ def generate(registrar: Registrar, source: np.ndarray, target: np.ndarray) -> Ge
     timings: dict[str, float] = {}
     t0 = time.perf_counter()
     with torch.no_grad():
-        est = registrar.estimate(a, b, pdsac_generator(registrar.config.seed), timings)
+        est = registrar.estimate(a, b, seeded_generator(registrar.config.seed), timings)
     seconds = time.perf_counter() - t0
     c = Correspondences(a.cpu(), est.source_generated.cpu(), b.cpu(), est.target_generated.cpu())
     return Generated(c, p, est.transform[0].double().cpu().numpy(), timings["network"], seconds)
-
-
-def normalized_transform(T: np.ndarray, p: PreparedPair) -> np.ndarray:
-    """A dataset-units target_from_source in the normalised frame of `p` (inverse of `to_input_units`):
-    S T init^-1 S^-1 with the similarity S x = (x - offset) / scale."""
-    S = np.diag([1.0 / p.scale] * 3 + [1.0])
-    S[:3, 3] = -np.asarray(p.offset) / p.scale
-    return S @ T @ np.linalg.inv(p.init) @ np.linalg.inv(S)
 
 
 def generation_errors(
@@ -261,7 +259,7 @@ def run_pose_solver_dataset(
         try:
             g = generate(registrar, item["source"], item["target"])
             net_seconds = g.network_seconds
-            gt_inliers = union_inlier_ratio(normalized_transform(truth.transform, g.prepared), g.correspondences,
+            gt_inliers = union_inlier_ratio(g.prepared.to_normalized(truth.transform), g.correspondences,
                                             threshold)
         except Exception as exc:  # noqa: BLE001 - an unusable pair fails every solver, not the run
             failed, net_seconds, gt_inliers = f"{type(exc).__name__}: {exc}", float("nan"), float("nan")

@@ -21,6 +21,7 @@ from genreg_core.bench.baselines import BASELINES, BaselineFn, BaselineParams, i
 from genreg_core.bench.datasets import OBJECT, SCENE
 from genreg_core.config import RefineConfig, RegistrationConfig
 from genreg_core.errors import CheckpointError
+from genreg_core.pdsac import seeded_generator
 from genreg_core.registration import Registrar
 
 DEFAULT_CHECKPOINTS = {OBJECT: "modelnet40", SCENE: "7scenes"}
@@ -106,12 +107,6 @@ def method_table(
     return table
 
 
-def pdsac_generator(seed: int | None) -> torch.Generator | None:
-    """A PDSAC generator seeded as `Registrar.register` seeds its own from `config.seed` (None: fresh
-    randomness)."""
-    return torch.Generator().manual_seed(seed) if seed is not None else None
-
-
 def measure_throughput(
     registrar: Registrar, pairs: Any, indices: Sequence[int], batch: int, repeats: int = 3
 ) -> dict[str, Any]:
@@ -127,7 +122,7 @@ def measure_throughput(
     b = torch.from_numpy(np.stack([p.b for p in prepared])).to(device)
 
     def once(x: torch.Tensor, y: torch.Tensor) -> float:
-        gen = pdsac_generator(0)
+        gen = seeded_generator(0)
         t0 = time.perf_counter()
         with torch.no_grad():
             registrar.estimate(x, y, gen)
