@@ -6,8 +6,11 @@ flattened); the ROS node's parameters, their validation and `config/genreg.yaml`
 list. Dataclasses load from plain dicts (YAML) with `from_dict`, which rejects unknown keys and wrong
 types with a `ConfigError` naming the field; `check_ranges` enforces the declared limits.
 
-Units: distances in the registration settings are in the core's unit-box units (fractions of the
-source cloud's bounding-box size, see `genreg_core.geometry`), unless a name says otherwise.
+Units: distances in the registration settings are in the input's units (metres for sensor data,
+REP-103); 0 means auto: a fixed fraction of the source cloud's robust extent (its bounding box without
+the 0.1 % outermost points on each side, `prepare.robust_extent`), which is what the models were trained
+at and what a stray point cannot stretch. `prepare.model_frame_config` turns them into the normalised
+frame the network and PDSAC work in.
 """
 
 from __future__ import annotations
@@ -25,6 +28,11 @@ from genreg_core.errors import ConfigError
 REPO_ROOT = Path(__file__).resolve().parent.parent
 DEFAULT_DATA_ROOT = REPO_ROOT.parent / "shared" / "data"
 WEIGHTS_DIR = Path(__file__).resolve().parent / "weights"
+
+
+AUTO_INLIER_THRESHOLD = 0.05  # PDSAC inlier residual, auto: this share of the source's robust extent
+AUTO_ICP_DISTANCE = 0.05  # ICP correspondence distance, auto
+AUTO_GUARD_DISTANCE = 0.5  # ICP from the initial guess (the refinement guard), auto
 
 
 def data_root(configured: str | os.PathLike | None = None) -> Path:
@@ -144,12 +152,19 @@ class PDSACConfig:
 
     num_hypotheses: int = setting(512, "PDSAC hypotheses m drawn at once.", low=1, high=100000)
     sample_size: int = setting(4, "PDSAC correspondences k per minimal set.", low=3, high=64)
-    inlier_threshold: float = setting(0.05, "PDSAC inlier residual, unit-box units.", low=1e-6, high=1.0)
+    inlier_threshold: float = setting(0.0, "PDSAC inlier residual, m (input units); 0: auto, 5 % of the "
+                                      "source's robust extent.", low=0.0, high=1e4)
     temperature: float = setting(0.01, "Softmax temperature of the soft (training) selection.", low=1e-9)
     refit: bool = setting(True, "Least-squares refit on the winner's inliers (inference).")
 
     def __post_init__(self) -> None:
         check_ranges(self, "pdsac.")
+
+    @property
+    def tau(self) -> float:
+        """The inlier threshold in the units of the correspondences PDSAC is given (the pipeline hands it
+        the normalised frame, `prepare.model_frame_config`): the value, or the auto value if 0."""
+        return self.inlier_threshold or AUTO_INLIER_THRESHOLD
 
 
 @dataclass(frozen=True)
@@ -157,21 +172,25 @@ class RefineConfig:
     """Optional ICP refinement after GenReg + PDSAC (Open3D), and its guard.
 
     Guard against a wrong global estimate (e.g. a symmetric shape flipped): when the confidence after
-    refinement is below `guard_below`, ICP also runs from the initial guess (identity if none) with the
-    wide cut-off `guard_distance` and `guard_iterations`; the start whose result overlaps the target
-    better (fitness) wins. 0 turns the guard off. Chosen on training-split pairs (MODEL_CARD.md).
+    refinement is below `guard_below`, ICP also runs from identity with the wide cut-off
+    `guard_distance` and `guard_iterations`; the start whose result overlaps the target better (fitness)
+    wins. 0 turns the guard off. Chosen on training-split pairs (MODEL_CARD.md). With an initial guess,
+    refinement always runs from the guess too (with the refinement's own settings) and competes the
+    same way, so an exact guess is kept.
     """
 
-    method: str = setting("none", "ICP after PDSAC.", choices=("none", "point_to_point", "point_to_plane"))
+    method: str = setting("none", "Refinement after PDSAC: Open3D ICP point_to_point or point_to_plane, or "
+                          "small_gicp's gicp.", choices=("none", "point_to_point", "point_to_plane", "gicp"))
     max_iterations: int = setting(10, "ICP iterations.", low=1, high=1000)
-    max_correspondence_distance: float = setting(0.05, "ICP correspondence distance, unit-box units.",
-                                                 low=1e-6, high=1.0)
+    max_correspondence_distance: float = setting(0.0, "ICP correspondence distance, m (input units); 0: auto, "
+                                                 "5 % of the source's robust extent.", low=0.0, high=1e4)
     num_points: int = setting(5000, "Points per cloud used by ICP and the fitness measure.", low=16,
                               high=1_000_000)
     guard_below: float = setting(0.4, "Below this confidence ICP also runs from the initial guess; the "
                                  "better-overlapping start wins (0: off).", low=0.0, high=1.0)
-    guard_distance: float = setting(0.5, "ICP correspondence distance from the initial guess, unit-box units.",
-                                    low=1e-6, high=10.0)
+    guard_distance: float = setting(0.0, "ICP correspondence distance of the guard's run from the initial "
+                                    "guess (no guess given), m; 0: auto, 50 % of the robust extent.", low=0.0,
+                                    high=1e4)
     guard_iterations: int = setting(50, "ICP iterations from the initial guess.", low=1, high=1000)
 
     def __post_init__(self) -> None:

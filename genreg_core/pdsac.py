@@ -118,13 +118,13 @@ def pdsac(
     d = torch.gather(dst, 1, flat).reshape(B, cfg.num_hypotheses, cfg.sample_size, 3)
     hyps = kabsch(s, d)  # (B, m, 4, 4)
     res = hypothesis_residuals(hyps, src, dst)  # (B, m, N)
-    scores = truncated_score(res, cfg.inlier_threshold, weights)
+    scores = truncated_score(res, cfg.tau, weights)
     selection = torch.softmax(-scores / cfg.temperature, dim=-1)
     best = scores.argmin(dim=-1)
     T = hyps[torch.arange(B), best]
-    inliers = res[torch.arange(B), best] < cfg.inlier_threshold
+    inliers = res[torch.arange(B), best] < cfg.tau
     if cfg.refit if refit is None else refit:
-        T, inliers = refit_on_inliers(T, src, dst, cfg.inlier_threshold)
+        T, inliers = refit_on_inliers(T, src, dst, cfg.tau)
     return PDSACResult(T, hyps, scores, selection, inliers)
 
 
@@ -189,10 +189,10 @@ def pdsac_bidirectional(
     src, dst = union_correspondences(a, a_gen, b, b_gen)
     w = None if overlap is None else torch.cat([o_a, o_b], dim=1)
     candidates = torch.stack([res_a.transform, invert_transform(res_b.transform)], dim=1)  # (B, 2, 4, 4)
-    score = truncated_score(residuals(candidates, src[:, None], dst[:, None]), cfg.inlier_threshold, w)
+    score = truncated_score(residuals(candidates, src[:, None], dst[:, None]), cfg.tau, w)
     T = candidates[torch.arange(a.shape[0]), score.argmin(dim=1)]
     if cfg.refit:
-        T, inliers = refit_on_inliers(T, src, dst, cfg.inlier_threshold, weights=w)
+        T, inliers = refit_on_inliers(T, src, dst, cfg.tau, weights=w)
     else:
-        inliers = residuals(T, src, dst) < cfg.inlier_threshold
+        inliers = residuals(T, src, dst) < cfg.tau
     return T, res_a, res_b, inliers

@@ -11,6 +11,7 @@ from dataclasses import replace
 
 import numpy as np
 import open3d as o3d
+import small_gicp
 
 from genreg_core.config import RefineConfig
 
@@ -47,11 +48,15 @@ def icp(
     voxel_size: float = 0.0,
     normal_radius: float | None = None,
 ) -> np.ndarray:
-    """Open3D ICP from `init` (identity if None): the 4x4 target_from_source it converges to.
+    """ICP from `init` (identity if None): the 4x4 target_from_source it converges to.
 
-    `method`: "point_to_point" or "point_to_plane" (target normals by `estimate_normals`, unless the target
-    cloud already has them). Both clouds are voxel-downsampled first when `voxel_size` > 0.
+    `method`: Open3D's "point_to_point" or "point_to_plane" (target normals by `estimate_normals`, unless
+    the target cloud already has them), or small_gicp's "gicp" (arrays only; covariances from its default
+    neighbourhoods). Both clouds are voxel-downsampled first when `voxel_size` > 0.
     """
+    if method == "gicp":
+        return gicp(np.asarray(source, dtype=np.float64), np.asarray(target, dtype=np.float64), init,
+                    max_distance=max_distance, max_iterations=max_iterations, voxel_size=voxel_size)
     reg = o3d.pipelines.registration
     src = source if isinstance(source, o3d.geometry.PointCloud) else o3d_cloud(source)
     tgt = target if isinstance(target, o3d.geometry.PointCloud) else o3d_cloud(target)
@@ -71,6 +76,26 @@ def icp(
     return np.asarray(result.transformation).copy()
 
 
+def gicp(source: np.ndarray, target: np.ndarray, init: np.ndarray | None = None, *, max_distance: float,
+         max_iterations: int, voxel_size: float = 0.0, threads: int = 1, neighbours: int = 10) -> np.ndarray:
+    """small_gicp's GICP from `init`: the 4x4 target_from_source. Both clouds are voxel-downsampled by
+    small_gicp when `voxel_size` > 0; point covariances from `neighbours` nearest neighbours."""
+    init = np.eye(4) if init is None else np.asarray(init, dtype=np.float64)
+    if voxel_size > 0:
+        result = small_gicp.align(target, source, init, registration_type="GICP", downsampling_resolution=voxel_size,
+                                  max_correspondence_distance=max_distance, num_threads=threads,
+                                  max_iterations=max_iterations)
+    else:
+        clouds = [small_gicp.PointCloud(np.ascontiguousarray(c, dtype=np.float64)) for c in (target, source)]
+        trees = [small_gicp.KdTree(c, num_threads=threads) for c in clouds]
+        for c, tree in zip(clouds, trees, strict=True):
+            small_gicp.estimate_covariances(c, tree, num_neighbors=neighbours, num_threads=threads)
+        result = small_gicp.align(clouds[0], clouds[1], trees[0], init, registration_type="GICP",
+                                  max_correspondence_distance=max_distance, num_threads=threads,
+                                  max_iterations=max_iterations)
+    return np.asarray(result.T_target_source).copy()
+
+
 def refine(src: np.ndarray, tgt: np.ndarray, T_init: np.ndarray, cfg: RefineConfig) -> np.ndarray:
     """The pipeline's refine stage: `cfg.max_iterations` ICP iterations of `cfg.method` from T_init."""
     return icp(src, tgt, T_init, method=cfg.method, max_distance=cfg.max_correspondence_distance,
@@ -78,7 +103,7 @@ def refine(src: np.ndarray, tgt: np.ndarray, T_init: np.ndarray, cfg: RefineConf
 
 
 def guard_icp(src: np.ndarray, tgt: np.ndarray, cfg: RefineConfig) -> np.ndarray:
-    """The refinement guard's candidate: ICP from the initial guess (identity in the frame of the
-    guess-moved source) with the guard's cut-off and iterations."""
+    """The refinement guard's candidate: ICP from identity with the guard's wide cut-off and iterations
+    (no initial guess given)."""
     guard = replace(cfg, max_correspondence_distance=cfg.guard_distance, max_iterations=cfg.guard_iterations)
     return refine(src, tgt, np.eye(4), guard)

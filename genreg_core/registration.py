@@ -10,8 +10,9 @@ Stages of `register_many` (`register` is one pair of it):
     3. interact  `model.interact`: the feature interaction (soft pointer) between the clouds
     4. generate  `model.generate`: A_g (the source in the target frame) and B_g
     5. PDSAC     `pdsac.pdsac_bidirectional`: one rigid transform from both generated sets
-    6. refine    `refine.refine` (ICP) and its guard `refine.guard_icp`
-    7. score     `score`: fitness, inlier ratio, confidence; the transform back in input units
+    6. refine    `refine.refine` (ICP); with an initial guess, refinement from the guess competes with
+                 GenReg's start (fitness decides); without one, the guard `refine.guard_icp`
+    7. score     `score`: fitness, inlier ratio, confidence, covariance; the transform in input units
 Conventions (frames, units, T_target_source): `genreg_core.geometry`. `transformation` is the input's
 target_from_source; internally everything runs in the prepared pair's normalised frame.
 """
@@ -27,12 +28,24 @@ import numpy as np
 import torch
 
 from genreg_core.checkpoint import load_checkpoint
-from genreg_core.config import RegistrationConfig
+from genreg_core.config import PDSACConfig, RegistrationConfig
 from genreg_core.geometry import apply_transform
 from genreg_core.pdsac import pdsac_bidirectional, seeded_generator, union_inlier_share
-from genreg_core.prepare import PreparedPair, prepare_pair
+from genreg_core.prepare import PreparedPair, model_frame_config, prepare_pair
 from genreg_core.refine import guard_icp, refine
-from genreg_core.score import confidence, fitness_distance, overlap_fitness
+from genreg_core.score import (
+    COVARIANCE_FLOOR_M,
+    COVARIANCE_FLOOR_RAD,
+    COVARIANCE_INFLATION,
+    confidence,
+    fitness_distance,
+    overlap_fitness,
+    pose_covariance,
+)
+
+# With an initial guess, another pose replaces it only when its fitness (share of source points overlapping
+# the target) is higher by more than this: a guess the user trusts is not traded for an equal-looking pose.
+GUESS_MARGIN = 0.02
 
 
 @dataclass
@@ -48,7 +61,9 @@ class RegistrationResult:
     inlier_ratio: float  # fraction of generated correspondences (both directions) consistent with T
     inlier_rmse: float  # RMS distance of the fitness inliers, input units
     confidence: float  # in [0, 1]: geometric mean of fitness and inlier_ratio
-    start: str = "genreg"  # what the final pose grew from: "genreg", or "initial_guess" (the refine guard won)
+    start: str = "genreg"  # what the final pose grew from: "genreg", or "initial_guess" (the guess, or the
+    # guard's ICP from identity without a guess, overlapped the target better)
+    covariance: np.ndarray | None = None  # (6, 6) of the final pose, ROS order (x, y, z, rot x, y, z), m, rad
     timings: dict[str, float] = field(default_factory=dict)  # seconds per stage and 'total'
 
 
@@ -60,6 +75,12 @@ class Estimate:
     source_generated: torch.Tensor  # A_g (B, N, 3), in b's frame
     target_generated: torch.Tensor  # B_g (B, N, 3), in a's frame
     inliers: torch.Tensor  # (B, 2N) bool: union correspondences within PDSAC's threshold of `transform`
+
+    @staticmethod
+    def cat(parts: Sequence[Estimate]) -> Estimate:
+        """One batch from several."""
+        return Estimate(*(torch.cat([getattr(e, f) for e in parts]) for f in
+                          ("transform", "source_generated", "target_generated", "inliers")))
 
 
 class Registrar:
@@ -103,7 +124,11 @@ class Registrar:
         b = torch.from_numpy(np.stack([p.b for p in prepared])).to(cfg.device)
         gen = seeded_generator(cfg.seed)
         stages: dict[str, float] = {}
-        est = self.estimate(a, b, gen, stages)  # 2.-5. encode, interact, generate, PDSAC
+        frames = [model_frame_config(cfg, p.scale).pdsac for p in prepared]  # distances per pair's frame
+        if len({f.inlier_threshold for f in frames}) == 1:
+            est = self.estimate(a, b, gen, stages, frames[0])  # 2.-5. encode, interact, generate, PDSAC
+        else:  # metric thresholds on pairs of different scales: one PDSAC threshold per pair
+            est = Estimate.cat([self.estimate(a[k: k + 1], b[k: k + 1], gen, stages, f) for k, f in enumerate(frames)])
         shared = {name: seconds / len(prepared) for name, seconds in stages.items()}
         return [self.refine_and_score(p, est, k, shared) for k, p in enumerate(prepared)]  # 6., 7.
 
@@ -116,16 +141,18 @@ class Registrar:
 
     @torch.no_grad()
     def estimate(self, a: torch.Tensor, b: torch.Tensor, generator: torch.Generator | None = None,
-                 timings: dict[str, float] | None = None) -> Estimate:
-        """Stages 2-5 on normalised (B, N, 3) batches; seconds of the network and of PDSAC are added to
+                 timings: dict[str, float] | None = None, pdsac: PDSACConfig | None = None) -> Estimate:
+        """Stages 2-5 on normalised (B, N, 3) batches, with `pdsac` settings in that frame (default: the
+        config's, for inputs already in the unit box); seconds of the network and of PDSAC are added to
         `timings` ('network', 'pdsac') if given."""
+        pdsac = pdsac or model_frame_config(self.config, 1.0).pdsac
         t0 = time.perf_counter()
         enc = self.model.encode(a, b)  # 2. encode
         match = self.model.interact(enc)  # 3. interact
         out = self.model.generate(enc, match)  # 4. generate
         t1 = time.perf_counter()
         T, _, _, inliers = pdsac_bidirectional(  # 5. PDSAC
-            a, out.source_generated, b, out.target_generated, self.config.pdsac, generator, out.overlap())
+            a, out.source_generated, b, out.target_generated, pdsac, generator, out.overlap())
         if timings is not None:
             timings["network"] = timings.get("network", 0.0) + t1 - t0
             timings["pdsac"] = timings.get("pdsac", 0.0) + time.perf_counter() - t1
@@ -133,27 +160,40 @@ class Registrar:
 
     def refine_and_score(self, p: PreparedPair, est: Estimate, k: int, shared: dict[str, float]
                          ) -> RegistrationResult:
-        """Stages 6 (refine, guard) and 7 (score) for pair k of a batch estimate."""
-        cfg = self.config
+        """Stages 6 (refine; the guess or the guard competes) and 7 (score) for pair k of a batch estimate."""
+        cfg = model_frame_config(self.config, p.scale)  # distances in this pair's normalised frame
         t0 = time.perf_counter()
         T_n = est.transform[k].double().cpu().numpy()
         inlier_ratio = float(est.inliers[k].float().mean())
-        start = "genreg"
-        if cfg.refine.method != "none":
-            T_n = refine(p.dense_src, p.dense_tgt, T_n, cfg.refine)  # 6. refine
+        refining = cfg.refine.method != "none"
+        if refining:
+            T_n = refine(p.dense_src, p.dense_tgt, T_n, cfg.refine)  # 6. refine GenReg's estimate
         distance = fitness_distance(p.dense_tgt)
         fitness, rmse_n = overlap_fitness(p.dense_src, p.dense_tgt, T_n, distance)  # 7. score
-        if cfg.refine.method != "none" and confidence(fitness, inlier_ratio) < cfg.refine.guard_below:
-            T_prior = guard_icp(p.dense_src, p.dense_tgt, cfg.refine)  # 6. guard: ICP from the guess
-            fitness_prior, rmse_prior = overlap_fitness(p.dense_src, p.dense_tgt, T_prior, distance)
-            if fitness_prior > fitness:
-                T_n, fitness, rmse_n, start = T_prior, fitness_prior, rmse_prior, "initial_guess"
-                T_k = torch.from_numpy(T_prior)[None].to(est.source_generated.dtype)
+        start, rival = "genreg", None
+        if p.init is not None:  # 6. the initial guess (identity in the guess-moved frame), kept or refined
+            rival = np.eye(4)
+            if refining:
+                moved = refine(p.dense_src, p.dense_tgt, rival, cfg.refine)
+                if overlap_fitness(p.dense_src, p.dense_tgt, moved, distance)[0] > \
+                        overlap_fitness(p.dense_src, p.dense_tgt, rival, distance)[0] + GUESS_MARGIN:
+                    rival = moved  # refinement must earn its move away from the user's guess
+        elif refining and confidence(fitness, inlier_ratio) < cfg.refine.guard_below:
+            rival = guard_icp(p.dense_src, p.dense_tgt, cfg.refine)  # 6. the guard: wide ICP from identity
+        if rival is not None:
+            fitness_rival, rmse_rival = overlap_fitness(p.dense_src, p.dense_tgt, rival, distance)
+            if fitness_rival + (GUESS_MARGIN if p.init is not None else 0.0) > fitness:
+                T_n, fitness, rmse_n, start = rival, fitness_rival, rmse_rival, "initial_guess"
+                T_k = torch.from_numpy(rival)[None].to(est.source_generated.dtype)
                 a, b = torch.from_numpy(p.a)[None], torch.from_numpy(p.b)[None]
                 inlier_ratio = float(union_inlier_share(T_k, a, est.source_generated[k: k + 1], b,
-                                                        est.target_generated[k: k + 1], cfg.pdsac.inlier_threshold)[0])
+                                                        est.target_generated[k: k + 1], cfg.pdsac.tau)[0])
         t1 = time.perf_counter()
         T = p.to_input_units(T_n)
+        moved = p.points_to_input_units(apply_transform(T_n, p.dense_src.astype(np.float64)))
+        covariance = pose_covariance(moved, p.points_to_input_units(p.dense_tgt.astype(np.float64)), T[:3, 3],
+                                     distance * p.scale, COVARIANCE_INFLATION,
+                                     (COVARIANCE_FLOOR_M, COVARIANCE_FLOOR_RAD))
         a_gen = p.points_to_input_units(est.source_generated[k].double().cpu().numpy())
         b_gen = p.points_to_input_units(est.target_generated[k].double().cpu().numpy())
         aligned = apply_transform(T, p.src).astype(np.float32)
@@ -161,7 +201,7 @@ class Registrar:
         return RegistrationResult(
             transformation=T,
             source_generated=a_gen.astype(np.float32),
-            target_generated=apply_transform(np.linalg.inv(p.init), b_gen).astype(np.float32),
+            target_generated=apply_transform(np.linalg.inv(p.guess), b_gen).astype(np.float32),
             aligned_source=aligned,
             source_valid_mask=p.src_mask,
             fitness=fitness,
@@ -169,6 +209,7 @@ class Registrar:
             inlier_rmse=rmse_n * p.scale,
             confidence=confidence(fitness, inlier_ratio),
             start=start,
+            covariance=covariance,
             timings={"preprocess": p.seconds, "network": shared["network"], "pdsac": shared["pdsac"],
                      "refine": t1 - t0, "postprocess": t2 - t1,
                      "total": p.seconds + shared["network"] + shared["pdsac"] + t2 - t0},

@@ -153,13 +153,13 @@ def solve_o3d_ransac(
     result = reg.registration_ransac_based_on_correspondence(
         o3d.geometry.PointCloud(o3d.utility.Vector3dVector(src)),
         o3d.geometry.PointCloud(o3d.utility.Vector3dVector(dst)),
-        corres, cfg.inlier_threshold, reg.TransformationEstimationPointToPoint(False), settings.ransac_n, [],
+        corres, cfg.tau, reg.TransformationEstimationPointToPoint(False), settings.ransac_n, [],
         reg.RANSACConvergenceCriteria(settings.max_iteration, settings.confidence),
     )
     T = np.asarray(result.transformation).copy()
     if refit:
         T_t, _ = refit_on_inliers(torch.from_numpy(T)[None], torch.from_numpy(src)[None],
-                                  torch.from_numpy(dst)[None], cfg.inlier_threshold)
+                                  torch.from_numpy(dst)[None], cfg.tau)
         T = T_t[0].numpy()
     return T
 
@@ -249,7 +249,7 @@ def run_pose_solver_dataset(
     warm = generate(registrar, pairs[indices[0]]["source"], pairs[indices[0]]["target"]).correspondences
     for solve in solvers.values():  # first-call costs (allocations, thread pools) stay out of the timings
         solve(warm, cfg.pdsac, cfg.seed)
-    threshold = cfg.pdsac.inlier_threshold
+    threshold = cfg.pdsac.tau
     records: list[dict[str, Any]] = []
     per_pair: dict[str, list[float]] = {"cd_floor": [], "gt_inlier_ratio": [], "network_seconds": []}
     for i in indices:
@@ -298,7 +298,7 @@ def pose_solver_description(cfg: RegistrationConfig, settings: RansacSettings, t
         f"iterations, confidence {settings.confidence}; seeded, yet not bit-reproducible from run to run); it "
         "returns its best minimal-sample transform. "
         "`o3d-ransac+refit`: that transform refit by least squares on its inliers (PDSAC's refit). "
-        f"Inlier distance {p.inlier_threshold} (unit box of the source) for all; `inliers`: mean share of the 2N "
+        f"Inlier distance {p.tau} (unit box of the source) for all; `inliers`: mean share of the 2N "
         "correspondences within it of the estimate (`ground truth`: of the true pose). "
         f"Solver ms: solver wall time alone, median, {threads} thread(s); the network's time is not in it."
     )

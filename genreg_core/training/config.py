@@ -75,7 +75,9 @@ class TrainConfig:
     threads: int = 2
     init_from: str | None = None  # warm start: generator weights from this checkpoint (fresh optimiser)
     model: ModelConfig = field(default_factory=ModelConfig)
-    pdsac: PDSACConfig = field(default_factory=lambda: PDSACConfig(num_hypotheses=64, temperature=0.01))
+    # training pairs are in the unit box, so PDSAC's inlier threshold is the auto value in those units
+    pdsac: PDSACConfig = field(default_factory=lambda: PDSACConfig(num_hypotheses=64, temperature=0.01,
+                                                                   inlier_threshold=0.05))
     data: DataConfig = field(default_factory=DataConfig)
     loss: LossWeights = field(default_factory=LossWeights)
     gan: GanConfig = field(default_factory=GanConfig)
