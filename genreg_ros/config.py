@@ -9,8 +9,11 @@ generated from the same list:
     python -m genreg_ros.config --write-yaml config/genreg.yaml     # after changing a setting
     python -m genreg_ros.config --check config/genreg.yaml          # exit 1 if the file is out of date
 
-Units: metres and seconds (REP-103), except the PDSAC/ICP distances, which are in the core's unit-box
-units (see `genreg_core.config`). Frames and transform names: `genreg_core.geometry`.
+Two params files are generated from the one list: `config/genreg.yaml` (depth-camera scenes: the
+`SCENE_OVERRIDES` below) and `config/genreg_objects.yaml` (object models: the plain defaults).
+
+Units: metres and seconds (REP-103); distance settings that accept 0 derive it from the clouds ("auto").
+Frames and transform names: `genreg_core.geometry`.
 """
 
 
@@ -41,6 +44,7 @@ from genreg_ros.conversions import pose_matrix
 from genreg_ros.sync import MODES
 
 RELIABILITIES = ("best_effort", "reliable")
+DURABILITIES = ("volatile", "transient_local")
 
 
 @dataclass(frozen=True)
@@ -79,6 +83,9 @@ class SyncParams:
                         "against the newest target.", choices=MODES)
     slop: float = setting(0.05, "Largest stamp difference of a pair, s.", low=0.0, high=10.0)
     queue_size: int = setting(5, "Unpaired messages kept per topic.", low=1, high=100)
+    time_jump: float = setting(1.0, "A stamp this much older than the newest of its topic (bag loop, simulator "
+                               "reset) resets pairing, tracking and topic guesses, s; 0: off.", low=0.0,
+                               high=1e6)
 
     def __post_init__(self) -> None:
         check_ranges(self, "sync.")
@@ -93,6 +100,10 @@ class QosParams:
     depth: int = setting(5, "Subscription history depth.", low=1, high=100, start_up=True)
     publisher_reliability: str = setting("reliable", "Reliability of the output topics.", choices=RELIABILITIES,
                                          start_up=True)
+    target_durability: str = setting("volatile", "Durability of the target subscription: transient_local "
+                                     "receives a latched map published before the node started (use it with "
+                                     "a reliable, transient_local publisher).", choices=DURABILITIES,
+                                     start_up=True)
 
     def __post_init__(self) -> None:
         check_ranges(self, "qos.")
@@ -103,7 +114,8 @@ class DiagnosticsParams:
     """The /diagnostics status."""
 
     period: float = setting(1.0, "Diagnostics publishing period, s.", low=0.05, high=60.0, start_up=True)
-    stale_timeout: float = setting(2.0, "Warn when a cloud topic is silent this long, s.", low=0.1, high=3600.0)
+    stale_timeout: float = setting(2.0, "Warn when a cloud topic is silent this long (and once when a matched "
+                                   "publisher delivers nothing this long), s.", low=0.1, high=3600.0)
 
     def __post_init__(self) -> None:
         check_ranges(self, "diagnostics.")
@@ -113,6 +125,8 @@ class DiagnosticsParams:
 class NodeConfig:
     """Every setting of register_node. Where the node's default differs from the API's, it says so here."""
 
+    autostart: bool = setting(True, "Configure and activate at start (lifecycle); false: wait for the "
+                              "lifecycle transitions (<node>/change_state).", start_up=True)
     model: ModelParams = setting(ModelParams(), "The network.")
     pdsac: PDSACConfig = setting(PDSACConfig(), "PDSAC (the core's defaults).")
     # The node refines with point-to-point ICP, 20 iterations; the API's default is no refinement.
@@ -126,11 +140,23 @@ class NodeConfig:
     target_frame: str = setting("", "Target frame id; empty: the target header's frame_id.")
     max_points: int = setting(1_000_000, "Clouds with more points (width * height) are dropped.", low=1,
                               high=100_000_000)
+    target_file: str = setting("", "A fixed target cloud (PLY or PCD, metres) in target_frame, read at "
+                               "configure; every source registers against it (the target_cloud topic is not "
+                               "subscribed). Empty: the target_cloud topic.", start_up=True)
+    target_crop_radius: float = setting(0.0, "With a pose estimate (a guess or the last result), register "
+                                        "against the fixed target's points within this radius of the "
+                                        "source's predicted centre, m; 0: off.", low=0.0, high=1e6)
     initial_guess: tuple[float, ...] = setting((), "T_target_source start: [] none, [x, y, z, qx, qy, qz, qw] (m) "
-                                               "or 16 row-major 4x4 values. The initial_guess topic overrides it.")
+                                               "or 16 row-major 4x4 values. The initial_guess and initialpose "
+                                               "topics override it.")
+    initial_guess_timeout: float = setting(5.0, "A guess from a topic is used for this long after it arrived, s; "
+                                           "0: until replaced.", low=0.0, high=1e6)
     use_last_result_as_guess: bool = setting(False, "Start each registration from the previous result (tracking).")
     min_fitness: float = setting(0.0, "Results with lower fitness are counted as failed and not published.",
                                  low=0.0, high=1.0)
+    # TODO(lead): choose the min_confidence default on training pairs (issue 14); 0.0 rejects nothing.
+    min_confidence: float = setting(0.0, "Results with lower confidence are not published (counted as "
+                                    "failed.low_confidence_rejected).", low=0.0, high=1.0)
     warn_confidence: float = setting(0.3, "Results with lower confidence are published, with a throttled "
                                      "warning, a low_confidence count and a WARN diagnostics status.",
                                      low=0.0, high=1.0)
@@ -142,6 +168,8 @@ class NodeConfig:
         check_ranges(self)
         self.registration_config()  # the core's own checks (e.g. the device name)
         self.initial_guess_matrix()
+        if self.target_file and not self.target_frame:
+            raise ConfigError("target_file needs target_frame (the file has no frame id)")
 
     def registration_config(self) -> RegistrationConfig:
         """The core's RegistrationConfig: each of its fields is the NodeConfig field of the same name, or
@@ -174,16 +202,23 @@ class NodeConfig:
 SETTINGS: tuple[Setting, ...] = settings(NodeConfig)
 
 
-# ----------------------------------------------------------------------------- config/genreg.yaml
+# ----------------------------------------------------------------------------- the params files
+CONFIG_DIR = Path(__file__).resolve().parent.parent / "config"
+# The shipped params files: name -> (what it is for, the settings that differ from NodeConfig's defaults).
+SCENE_OVERRIDES = {"model.checkpoint": "7scenes"}
+PROFILES: dict[str, tuple[str, dict[str, Any]]] = {
+    "genreg.yaml": ("depth-camera and indoor scenes (the scene model 7scenes)", SCENE_OVERRIDES),
+    "genreg_objects.yaml": ("object models (the object model modelnet40, clouds of a single object)", {}),
+}
 YAML_HEADER = """\
-# Parameters of genreg_ros register_node, with their defaults. GENERATED from genreg_ros/config.py
+# Parameters of genreg_ros register_node for {purpose}. GENERATED from genreg_ros/config.py
 # (and the core's config dataclasses): edit those, then run
-#   python -m genreg_ros.config --write-yaml config/genreg.yaml
-# Use:  ros2 run genreg_ros register_node --ros-args --params-file config/genreg.yaml
-# Units: metres and seconds (REP-103). PDSAC/ICP distances are in the core's unit-box units
-# (fractions of the source cloud's bounding-box size). Empty lists / strings mean "off" / "from the message";
-# registration.seed -1 draws fresh randomness. Parameters marked (start-up) are read once; the others can
-# be changed at run time (ros2 param set).
+#   .venv/bin/python -m genreg_ros.config --write
+# Use:  .venv/bin/register_node --ros-args --params-file config/{name}
+# Units: metres and seconds (REP-103); a distance of 0 means auto (derived from the clouds) where its
+# comment says so. Empty lists / strings mean "off" / "from the message"; registration.seed -1 draws fresh
+# randomness. Parameters marked (start-up) are read once; the others can be changed at run time
+# (ros2 param set, or the node's set_parameters service).
 """
 
 
@@ -218,12 +253,20 @@ def _comment(s: Setting) -> str:
     return " ".join(parts)
 
 
-def yaml_text(ros_value=None) -> str:
-    """config/genreg.yaml: every parameter with its default and a comment. `ros_value(setting, value)`
-    gives a default's ROS form (default: `genreg_ros.params.to_ros`)."""
+def defaults(name: str = "genreg.yaml") -> dict[str, Any]:
+    """Every setting's value in the shipped params file `name` (setting values, not ROS values)."""
+    overrides = PROFILES[name][1]
+    return {s.name: overrides.get(s.name, s.default) for s in SETTINGS}
+
+
+def yaml_text(name: str = "genreg.yaml", ros_value=None) -> str:
+    """The shipped params file `name` (a key of PROFILES): every parameter with its value and a comment.
+    `ros_value(setting, value)` gives a value's ROS form (default: `genreg_ros.params.to_ros`)."""
     if ros_value is None:
         from genreg_ros.params import to_ros as ros_value
-    lines, group = [YAML_HEADER + "/**:", "  ros__parameters:"], ()
+    values = defaults(name)
+    header = YAML_HEADER.format(purpose=PROFILES[name][0], name=name)
+    lines, group = [header + "/**:", "  ros__parameters:"], ()
     for s in SETTINGS:
         *path, leaf = s.name.split(".")
         common = 0
@@ -232,7 +275,7 @@ def yaml_text(ros_value=None) -> str:
         for depth in range(common, len(path)):
             lines.append("    " + "  " * depth + f"{path[depth]}:")
         group = tuple(path)
-        entry = "    " + "  " * len(path) + f"{leaf}: {yaml_scalar(ros_value(s, s.default))}"
+        entry = "    " + "  " * len(path) + f"{leaf}: {yaml_scalar(ros_value(s, values[s.name]))}"
         lines.append(f"{entry:<40} # {_comment(s)}")
     return "\n".join(lines) + "\n"
 
@@ -240,19 +283,20 @@ def yaml_text(ros_value=None) -> str:
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(prog="python -m genreg_ros.config", description=__doc__.split("\n\n")[0])
     action = p.add_mutually_exclusive_group(required=True)
-    action.add_argument("--write-yaml", type=Path, metavar="PATH", help="write the params file")
-    action.add_argument("--check", type=Path, metavar="PATH", help="exit 1 if PATH differs from the generated file")
+    action.add_argument("--write", action="store_true", help=f"write {', '.join(PROFILES)} into config/")
+    action.add_argument("--check", action="store_true", help="exit 1 if a shipped params file is out of date")
     args = p.parse_args(argv)
-    text = yaml_text()
-    if args.write_yaml:
-        args.write_yaml.write_text(text)
-        print(f"wrote {args.write_yaml} ({len(SETTINGS)} parameters)")
-        return 0
-    if args.check.read_text() != text:
-        print(f"{args.check} is out of date: run python -m genreg_ros.config --write-yaml {args.check}",
-              file=sys.stderr)
-        return 1
-    return 0
+    stale = []
+    for name in PROFILES:
+        path, text = CONFIG_DIR / name, yaml_text(name)
+        if args.write:
+            path.write_text(text)
+            print(f"wrote {path} ({len(SETTINGS)} parameters)")
+        elif not path.is_file() or path.read_text() != text:
+            stale.append(name)
+    if stale:
+        print(f"out of date: {', '.join(stale)}: run python -m genreg_ros.config --write", file=sys.stderr)
+    return int(bool(stale))
 
 
 if __name__ == "__main__":

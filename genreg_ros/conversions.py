@@ -41,7 +41,8 @@ def pose_matrix(translation: Any, quaternion_xyzw: Any) -> np.ndarray:
 
 
 def msg_to_matrix(msg: Any) -> np.ndarray:
-    """4x4 T_parent_child of a geometry_msgs TransformStamped (or a PoseStamped: T_frame_pose)."""
+    """4x4 T_parent_child of a geometry_msgs TransformStamped (or a PoseStamped / PoseWithCovariance:
+    T_frame_pose)."""
     if hasattr(msg, "transform"):
         tr, r = msg.transform.translation, msg.transform.rotation
     else:
@@ -57,15 +58,36 @@ def rclpy_types() -> SimpleNamespace:
                            Quaternion=Quaternion)
 
 
+def _xyz_quat(T: np.ndarray) -> tuple[tuple[float, float, float], tuple[float, float, float, float]]:
+    T = np.asarray(T, dtype=np.float64)
+    x, y, z = (float(v) for v in T[:3, 3])
+    qx, qy, qz, qw = (float(v) for v in Rotation.from_matrix(T[:3, :3]).as_quat())
+    return (x, y, z), (qx, qy, qz, qw)
+
+
+def matrix_to_pose_msg(T: np.ndarray, header: Any, covariance: np.ndarray | None) -> Any:
+    """rclpy PoseWithCovarianceStamped of T_frame_pose (frame = header.frame_id) with a (6, 6) covariance in
+    ROS order (x, y, z, rotation about x, y, z), row-major; None (unknown) is all zeros but -1 first, the
+    sensor_msgs convention for "no estimate"."""
+    from geometry_msgs.msg import Point, Pose, PoseWithCovariance, PoseWithCovarianceStamped, Quaternion
+
+    (x, y, z), (qx, qy, qz, qw) = _xyz_quat(T)
+    cov = np.zeros(36)
+    if covariance is None:
+        cov[0] = -1.0
+    else:
+        cov[:] = np.asarray(covariance, dtype=np.float64).reshape(36)
+    pose = Pose(position=Point(x=x, y=y, z=z), orientation=Quaternion(x=qx, y=qy, z=qz, w=qw))
+    return PoseWithCovarianceStamped(header=header, pose=PoseWithCovariance(pose=pose, covariance=cov.tolist()))
+
+
 def matrix_to_msg(T: np.ndarray, header: Any, child_frame: str, types: SimpleNamespace | None = None) -> Any:
     """TransformStamped of T_parent_child: parent = header.frame_id, child = child_frame.
 
     `types` holds the message classes TransformStamped, Transform, Vector3 and Quaternion (default:
     rclpy's, `rclpy_types()`); the header must be of the same family."""
     types = types or rclpy_types()
-    T = np.asarray(T, dtype=np.float64)
-    x, y, z = (float(v) for v in T[:3, 3])
-    qx, qy, qz, qw = (float(v) for v in Rotation.from_matrix(T[:3, :3]).as_quat())
+    (x, y, z), (qx, qy, qz, qw) = _xyz_quat(T)
     transform = types.Transform(translation=types.Vector3(x=x, y=y, z=z),
                                 rotation=types.Quaternion(x=qx, y=qy, z=qz, w=qw))
     return types.TransformStamped(header=header, child_frame_id=child_frame, transform=transform)

@@ -28,6 +28,7 @@ class Stats:
         self.received: Counter[str] = Counter()
         self.dropped: Counter[str] = Counter()
         self.failed: Counter[str] = Counter()
+        self.events: Counter[str] = Counter()  # time_jump, reset
         self.registered = 0
         self.low_confidence = 0  # registered and published, but below warn_confidence
         self.paired = 0  # pairs formed by the sync; each is registered, failed, dropped or superseded
@@ -43,6 +44,10 @@ class Stats:
         with self.lock:
             self.received[topic] += 1
             self.last_arrival[topic] = now
+
+    def event(self, name: str) -> None:
+        with self.lock:
+            self.events[name] += 1
 
     def pair_formed(self) -> None:
         with self.lock:
@@ -70,7 +75,8 @@ class Stats:
     def snapshot(self) -> Snapshot:
         with self.lock:
             return Snapshot(
-                Counter(self.received), Counter(self.dropped), Counter(self.failed), self.registered,
+                Counter(self.received), Counter(self.dropped), Counter(self.failed), Counter(self.events),
+                self.registered,
                 self.low_confidence, self.paired, dict(self.last_arrival), list(self.latency),
                 list(self.overhead), list(self.callback), dict(self.last), self.last_outcome, self.start)
 
@@ -82,6 +88,7 @@ class Snapshot:
     received: Counter
     dropped: Counter
     failed: Counter
+    events: Counter
     registered: int
     low_confidence: int
     paired: int
@@ -99,10 +106,22 @@ class Snapshot:
 
 
 def build_status(s: Snapshot, now: float, name: str, hardware_id: str, stale_timeout: float,
-                 warn_confidence: float) -> tuple[DiagnosticStatus, dict[str, str]]:
-    """The node's DiagnosticStatus, and a note per stale topic ({"source": "no new source cloud for 3.1 s"})."""
-    level, notes, stale = DiagnosticStatus.OK, [], {}
-    for topic in (SOURCE, TARGET):
+                 warn_confidence: float, state: str = "active", fixed_target: bool = False,
+                 notes: list[str] | None = None) -> tuple[DiagnosticStatus, dict[str, str]]:
+    """The node's DiagnosticStatus, and a note per stale topic ({"source": "no new source cloud for 3.1 s"}).
+
+    `state` is the lifecycle state: topics are checked only when "active". `fixed_target` (a target file,
+    or a latched target in latest_target mode): the target topic is not expected to update. `notes` are
+    WARN reasons of the caller (e.g. a matched publisher that delivers nothing)."""
+    level, stale = DiagnosticStatus.OK, {}
+    notes = list(notes or [])
+    if notes:
+        level = DiagnosticStatus.WARN
+    if state != "active":
+        notes.append(f"lifecycle state {state}")
+    for topic in (SOURCE, TARGET) if state == "active" else ():
+        if topic == TARGET and fixed_target:
+            continue
         silent = s.silent_for(topic, now)
         if silent > stale_timeout:
             level = DiagnosticStatus.WARN
@@ -119,6 +138,7 @@ def build_status(s: Snapshot, now: float, name: str, hardware_id: str, stale_tim
     dropped, failed = sum(s.dropped.values()), sum(s.failed.values())
     summary = f"registered {s.registered}, dropped {dropped}, failed {failed}"
     kv = {
+        "state": state,
         "registered": s.registered,
         "low_confidence": s.low_confidence,
         "dropped": dropped,
@@ -126,6 +146,8 @@ def build_status(s: Snapshot, now: float, name: str, hardware_id: str, stale_tim
         "received.source": s.received[SOURCE],
         "received.target": s.received[TARGET],
         "paired": s.paired,
+        "time_jump": s.events["time_jump"],
+        "reset": s.events["reset"],
         "latency_ms.last": 1e3 * s.latency[-1] if s.latency else float("nan"),
         "latency_ms.median": _median_ms(s.latency),
         "overhead_ms.median": _median_ms(s.overhead),

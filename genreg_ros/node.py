@@ -1,20 +1,35 @@
-"""register_node: GenReg registration of two PointCloud2 streams as a ROS 2 node.
+"""register_node: GenReg registration of two PointCloud2 streams as a ROS 2 lifecycle node.
 
 Topics (relative names, remap them):
-- in  `source_cloud`, `target_cloud` (sensor_msgs/PointCloud2), paired by header stamp (see sync.py);
-- in  `initial_guess` (geometry_msgs/TransformStamped, T_target_source), overrides the parameter;
+- in  `source_cloud`, `target_cloud` (sensor_msgs/PointCloud2), paired by header stamp (see sync.py); with
+  `target_file` the target is a fixed cloud read from a file and `target_cloud` is not subscribed;
+- in  `initial_guess` (geometry_msgs/TransformStamped, T_target_source; frames checked against the pair's)
+  and `initialpose` (geometry_msgs/PoseWithCovarianceStamped in the target frame, e.g. RViz's 2D Pose
+  Estimate): the source frame's pose in the target frame; both override the parameter and expire after
+  `initial_guess_timeout`;
 - out `aligned_cloud` (PointCloud2): the source's finite points moved into the target frame, every other
   field kept; frame_id = target frame, stamp = source stamp;
 - out `transform` (TransformStamped): header.frame_id = target frame (parent), child_frame_id = source
   frame, stamp = source stamp: T_target_source (conventions: `genreg_core.geometry`; REP-105 parent/child);
+- out `pose` (PoseWithCovarianceStamped): the same transform as the source frame's pose in the target frame,
+  with the result's 6x6 covariance (x, y, z, rotation about x, y, z; m, rad);
+- out `registration_status` (diagnostic_msgs/DiagnosticArray, header = source stamp and target frame): one
+  status per result with confidence, fitness, inlier RMSE (m) and which start won;
 - out `generated_cloud` (PointCloud2, if publish_generated): the network's generated source (A_g) in the
   target frame;
 - out `/diagnostics` (diagnostic_msgs/DiagnosticArray): latency, fitness, counts and their reasons.
+Services: the lifecycle services (`<node>/change_state`, `<node>/get_state`, ...) and `<node>/reset`
+(std_srvs/Trigger: forget tracking, guesses and pairing state).
+
+Lifecycle: configure loads the model (and the target file) and creates the publishers and the worker;
+activate subscribes and enables the publishers; deactivate unsubscribes; cleanup releases everything.
+`autostart` (default true) configures and activates at start, so the node runs as a plain node.
 
 Threads: subscription callbacks only check headers and pair stamps (O(1) in the cloud size); a worker
 thread decodes, registers and publishes. A newer pair replaces an older waiting one, so latency stays one
 registration at most and memory is bounded by the sync queues. Bad input is a throttled warning plus a
-counted drop; the node carries on.
+counted drop; the node carries on. A stamp more than `sync.time_jump` s older than its topic's newest
+(bag loop, simulator reset) resets pairing, tracking and topic guesses.
 
 Parameters: `genreg_ros.config` (the settings) and `genreg_ros.params` (their declaration and checks);
 counters and /diagnostics: `genreg_ros.diagnostics`; messages: `genreg_ros.pointcloud2`, `.conversions`.
@@ -27,28 +42,30 @@ import sys
 import threading
 import time
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any
 
 import numpy as np
 import rclpy
-from diagnostic_msgs.msg import DiagnosticArray
-from geometry_msgs.msg import TransformStamped
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+from geometry_msgs.msg import PoseWithCovarianceStamped, TransformStamped
 from rclpy.clock import Clock, ClockType
 from rclpy.executors import ExternalShutdownException
-from rclpy.node import Node
+from rclpy.lifecycle import LifecycleNode, LifecycleState, TransitionCallbackReturn
 from rclpy.parameter import Parameter
-from rclpy.qos import QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
+from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+from rclpy.task import Future
 from sensor_msgs.msg import PointCloud2
 from std_msgs.msg import Header
+from std_srvs.srv import Trigger
 
 from genreg_core.errors import GenRegError
 from genreg_core.preprocess import PreprocessConfig, preprocess
 from genreg_ros import params
 from genreg_ros.config import NodeConfig
-from genreg_ros.conversions import matrix_to_msg, msg_to_matrix, stamp_ns
+from genreg_ros.conversions import matrix_to_msg, matrix_to_pose_msg, msg_to_matrix, stamp_ns
 from genreg_ros.diagnostics import Stats, build_status
 from genreg_ros.pointcloud2 import (
-    DecodedCloud,
     PointCloud2Error,
     parse_layout,
     read_points,
@@ -59,6 +76,9 @@ from genreg_ros.sync import SOURCE, TARGET, LatestSlot, Pair, PairSync
 
 NODE_NAME = "register_node"
 WARN_THROTTLE_S = 2.0  # per drop/failure reason
+MIN_CROPPED_TARGET = 100  # target_crop_radius: fewer points left -> the whole target is used
+DOCS = "docs/ros_node.md"
+SUCCESS, FAILURE = TransitionCallbackReturn.SUCCESS, TransitionCallbackReturn.FAILURE
 
 _DROP_TEXT = {
     "unmatched": "no {other} cloud within sync.slop ({slop} s) of its stamp",
@@ -81,57 +101,79 @@ class _Cloud:
     received: float
 
 
+@dataclass(frozen=True)
+class _FixedTarget:
+    """The target_file cloud (metres) in target_frame; `received` is when it was read."""
+
+    points: np.ndarray
+    frame: str
+    received: float
+
+
+@dataclass(frozen=True)
+class _Guess:
+    """A guess from a topic: T_target_source, the frames it names (child None: any), its arrival time."""
+
+    T: np.ndarray
+    parent: str
+    child: str | None
+    received: float
+    origin: str
+
+
 def _snake(name: str) -> str:
     return re.sub(r"(?<!^)(?=[A-Z])", "_", name.removesuffix("Error")).lower()
 
 
-class RegisterNode(Node):
-    """The GenReg registration node. Construct inside an rclpy context; call `close()` before destroying."""
+class RegisterNode(LifecycleNode):
+    """The GenReg registration node. Construct inside an rclpy context; call `close()` before destroying.
+
+    With `autostart` (the default) the constructor configures and activates it (StartupError if that
+    fails); else drive it through the lifecycle services or `trigger_configure()` / `trigger_activate()`."""
 
     def __init__(self, **node_kwargs: Any) -> None:
         super().__init__(NODE_NAME, **node_kwargs)
         try:
             self._config = params.declare(self)
-            self._registrar = self._load_registrar(self._config)
-            self._tf_broadcaster = self._make_tf_broadcaster() if self._config.publish_tf else None
-        except (params.ParamError, StartupError) as exc:
+            params.check_overrides(self)
+        except params.ParamError as exc:
             self.destroy_node()
             raise StartupError(str(exc)) from None
         c = self._config
-        self._lock = threading.Lock()  # guards _sync
-        self._sync = PairSync(c.sync.slop, c.sync.queue_size, c.sync.mode)
-        self._slot = LatestSlot()
+        self._lock = threading.Lock()  # guards _sync, _newest, _guess, _last_T, _generation
         self._stats = Stats()
         self._warned: dict[str, float] = {}
         self._stale: set[str] = set()
-        self._guess_topic: np.ndarray | None = None
+        self._matched_since: dict[str, float | None] = {SOURCE: None, TARGET: None}
+        self._silent_warned: set[str] = set()
+        self._registrar = None
+        self._tf_broadcaster = None
+        self._fixed: _FixedTarget | None = None
+        self._startup_error = ""
+        self._sync = self._new_sync(c)
+        self._newest: dict[str, int | None] = {SOURCE: None, TARGET: None}
+        self._generation = 0  # incremented by every reset: a result of an older generation is not tracked
+        self._guess: _Guess | None = None
         self._last_T: np.ndarray | None = None
-        self._target_cache: tuple[PointCloud2, DecodedCloud, np.ndarray, PreprocessConfig] | None = None
-
-        sub_qos = QoSProfile(depth=c.qos.depth, reliability=ReliabilityPolicy.RELIABLE)
-        if c.qos.reliability == "best_effort":
-            sub_qos = QoSProfile(**{**_qos_dict(qos_profile_sensor_data), "depth": c.qos.depth})
-        pub_qos = QoSProfile(depth=5, reliability=ReliabilityPolicy[c.qos.publisher_reliability.upper()])
-        self._sub_source = self.create_subscription(
-            PointCloud2, "source_cloud", lambda m: self._on_cloud(SOURCE, m), sub_qos)
-        self._sub_target = self.create_subscription(
-            PointCloud2, "target_cloud", lambda m: self._on_cloud(TARGET, m), sub_qos)
-        self._sub_guess = self.create_subscription(TransformStamped, "initial_guess", self._on_guess, 1)
-        self._pub_aligned = self.create_publisher(PointCloud2, "aligned_cloud", pub_qos)
-        self._pub_transform = self.create_publisher(TransformStamped, "transform", pub_qos)
-        self._pub_generated = self.create_publisher(PointCloud2, "generated_cloud", pub_qos)
+        self._last_T_time = -np.inf
+        self._target_cache: tuple[Any, np.ndarray, PreprocessConfig] | None = None
+        self._slot = LatestSlot()
+        self._worker: threading.Thread | None = None
+        self._subs: dict[str, Any] = {}
+        self._pubs: dict[str, Any] = {}
+        self.finalized = Future()  # done after the shutdown transition (main() then exits)
         self._pub_diag = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
         # A steady clock: diagnostics keep coming when sim time (use_sim_time) stalls.
         self._diag_timer = self.create_timer(
             c.diagnostics.period, self._publish_diagnostics, clock=Clock(clock_type=ClockType.STEADY_TIME))
+        self._reset_srv = self.create_service(Trigger, "~/reset", self._on_reset)
+        self.add_pre_set_parameters_callback(params.coerce_arrays)
         self.add_on_set_parameters_callback(params.make_validator(lambda: self._config))
         self.add_post_set_parameters_callback(self._on_params_set)
-        self._worker = threading.Thread(target=self._work, name="genreg_worker", daemon=True)
-        self._worker.start()
-        self.get_logger().info(
-            f"ready: model {c.model.checkpoint} (N={self._registrar.num_points}, {c.registration.device}), "
-            f"sync {c.sync.mode} slop {c.sync.slop} s, subscription QoS {c.qos.reliability}; "
-            f"listening on {self._sub_source.topic_name} and {self._sub_target.topic_name}")
+        if c.autostart and (self.trigger_configure() != SUCCESS or self.trigger_activate() != SUCCESS):
+            text = self._startup_error or "configure or activate failed"
+            self.close()
+            raise StartupError(text)
 
     @property
     def config(self) -> NodeConfig:
@@ -145,8 +187,100 @@ class RegisterNode(Node):
 
     @property
     def registrar(self):
-        """The core's `Registrar` the node registers with."""
+        """The core's `Registrar` the node registers with (None before configure)."""
         return self._registrar
+
+    @property
+    def state(self) -> str:
+        """The lifecycle state's label: unconfigured, inactive, active, finalized (or a transition)."""
+        return self._state_machine.current_state[1]
+
+    # ----------------------------------------------------------------- lifecycle
+    def on_configure(self, state: LifecycleState) -> TransitionCallbackReturn:
+        c = self._config
+        try:
+            self._registrar = self._load_registrar(c)
+            self._tf_broadcaster = self._make_tf_broadcaster() if c.publish_tf else None
+            self._fixed = self._load_target_file(c) if c.target_file else None
+        except Exception as exc:  # noqa: BLE001 (rclpy would swallow it: report it as the start-up error)
+            self._startup_error = str(exc) if isinstance(exc, StartupError) else \
+                f"configure failed: {type(exc).__name__}: {exc}"
+            self._registrar = None
+            if not c.autostart:  # with autostart, main() prints it as the one start-up error line
+                self.get_logger().error(f"configure failed: {exc}")
+            return FAILURE
+        pub_qos = QoSProfile(depth=5, reliability=ReliabilityPolicy[c.qos.publisher_reliability.upper()])
+        for name, kind in (("aligned_cloud", PointCloud2), ("transform", TransformStamped),
+                           ("generated_cloud", PointCloud2), ("pose", PoseWithCovarianceStamped),
+                           ("registration_status", DiagnosticArray)):
+            self._pubs[name] = self.create_lifecycle_publisher(kind, name, pub_qos)
+        with self._lock:
+            self._sync = self._new_sync(c)  # latest_target with the file's cloud, if any
+        self._reset_state("configure", count=False)
+        self._slot = LatestSlot()
+        self._worker = threading.Thread(target=self._work, name="genreg_worker", daemon=True)
+        self._worker.start()
+        return super().on_configure(state)
+
+    def on_activate(self, state: LifecycleState) -> TransitionCallbackReturn:
+        c = self._config
+        reliability = ReliabilityPolicy[c.qos.reliability.upper()]
+        sub_qos = QoSProfile(depth=c.qos.depth, reliability=reliability)
+        target_qos = QoSProfile(depth=c.qos.depth, reliability=reliability,
+                                durability=DurabilityPolicy[c.qos.target_durability.upper()])
+        self._subs[SOURCE] = self.create_subscription(
+            PointCloud2, "source_cloud", lambda m: self._on_cloud(SOURCE, m), sub_qos)
+        if self._fixed is None:
+            self._subs[TARGET] = self.create_subscription(
+                PointCloud2, "target_cloud", lambda m: self._on_cloud(TARGET, m), target_qos)
+        self._subs["guess"] = self.create_subscription(TransformStamped, "initial_guess", self._on_guess, 1)
+        self._subs["initialpose"] = self.create_subscription(
+            PoseWithCovarianceStamped, "initialpose", self._on_initialpose, 1)
+        with self._stats.lock:  # staleness and silent publishers count from activation
+            self._stats.start = time.monotonic()
+            self._stats.last_arrival = {SOURCE: None, TARGET: None}
+        self._matched_since = {SOURCE: None, TARGET: None}
+        self._silent_warned.clear()
+        target = f"file {c.target_file} ({len(self._fixed.points)} points, frame {self._fixed.frame})" \
+            if self._fixed is not None else self._subs[TARGET].topic_name
+        self.get_logger().info(
+            f"ready: model {c.model.checkpoint} (N={self._registrar.num_points}, {c.registration.device}), "
+            f"sync {self._sync.mode} slop {c.sync.slop} s, subscription QoS {c.qos.reliability}; "
+            f"listening on {self._subs[SOURCE].topic_name}, target {target}")
+        return super().on_activate(state)
+
+    def on_deactivate(self, state: LifecycleState) -> TransitionCallbackReturn:
+        self._unsubscribe()
+        self._reset_state("deactivate", count=False)
+        return super().on_deactivate(state)
+
+    def on_cleanup(self, state: LifecycleState) -> TransitionCallbackReturn:
+        self._release()
+        return super().on_cleanup(state)
+
+    def on_shutdown(self, state: LifecycleState) -> TransitionCallbackReturn:
+        self._unsubscribe()
+        self._release()
+        self.get_logger().info("shut down (lifecycle)")
+        self.finalized.set_result(True)
+        return super().on_shutdown(state)
+
+    def _unsubscribe(self) -> None:
+        for sub in self._subs.values():
+            self.destroy_subscription(sub)
+        self._subs.clear()
+
+    def _release(self) -> None:
+        """Stop the worker (waits for the pair being registered), destroy the publishers, drop the model."""
+        self._slot.close()
+        if self._worker is not None:
+            self._worker.join(timeout=10.0)
+            self._worker = None
+        for pub in self._pubs.values():
+            self.destroy_lifecycle_publisher(pub)
+        self._pubs.clear()
+        self._registrar, self._tf_broadcaster, self._fixed, self._target_cache = None, None, None, None
+        self._reset_state("cleanup", count=False)
 
     # ----------------------------------------------------------------- start-up
     def _load_registrar(self, c: NodeConfig):
@@ -173,14 +307,54 @@ class RegisterNode(Node):
                 "or set publish_tf to false and use the 'transform' topic") from None
         return TransformBroadcaster(self)
 
-    # ----------------------------------------------------------------- parameters
+    @staticmethod
+    def _load_target_file(c: NodeConfig) -> _FixedTarget:
+        import open3d as o3d
+
+        path = Path(c.target_file).expanduser()
+        if not path.is_file():
+            raise StartupError(f"target_file not found: {path}")
+        points = np.asarray(o3d.io.read_point_cloud(str(path)).points, dtype=np.float64)
+        points = points[np.isfinite(points).all(axis=1)]
+        if len(points) == 0:
+            raise StartupError(f"target_file {path}: no points read (a PLY or PCD cloud is expected)")
+        return _FixedTarget(points, c.target_frame, time.monotonic())
+
+    # ----------------------------------------------------------------- parameters and state
+    def _new_sync(self, c: NodeConfig) -> PairSync:
+        """A PairSync for `c`; with a target file it holds that file as the latest target."""
+        fixed = getattr(self, "_fixed", None)
+        sync = PairSync(c.sync.slop, c.sync.queue_size, "latest_target" if fixed is not None else c.sync.mode)
+        if fixed is not None:
+            sync.add_target(0, fixed)
+        return sync
+
     def _on_params_set(self, changed: list[Parameter]) -> None:
         config = params.merged(self._config, changed)  # already validated by the on-set callback
         sync_changed = config.sync != self._config.sync
         self._config = config  # replaced, never mutated: readers take one consistent snapshot
         if sync_changed:
             with self._lock:
-                self._sync = PairSync(config.sync.slop, config.sync.queue_size, config.sync.mode)
+                self._sync = self._new_sync(config)
+
+    def _reset_state(self, why: str, count: bool = True) -> None:
+        """Forget pairing (queues, newest stamps, the waiting pair), tracking and topic guesses. A fixed or
+        latched target in latest_target mode stays."""
+        with self._lock:
+            self._sync.clear(keep_latest_target=self._sync.mode == "latest_target" and why != "cleanup")
+            self._newest = {SOURCE: None, TARGET: None}
+            self._guess, self._last_T, self._last_T_time = None, None, -np.inf
+            self._generation += 1
+        if self._slot.put(None) is not None:
+            self._drop("reset", f"a waiting pair was discarded ({why})")
+        if count:
+            self._stats.event("time_jump" if why.startswith("time jump") else "reset")
+
+    def _on_reset(self, request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
+        self._reset_state("reset service")
+        self.get_logger().info("reset: tracking, guesses and pairing state cleared")
+        response.success, response.message = True, "tracking, guesses and pairing state cleared"
+        return response
 
     # ----------------------------------------------------------------- callbacks (short)
     def _on_cloud(self, topic: str, msg: PointCloud2) -> None:
@@ -202,7 +376,15 @@ class RegisterNode(Node):
                 self._drop("too_many_points", f"{topic} cloud has {num} points, max_points is {c.max_points}")
                 return
             stamp = stamp_ns(msg.header)
+            newest = self._newest[topic]
+            if c.sync.time_jump > 0 and newest is not None and newest - stamp > c.sync.time_jump * 1e9:
+                self._reset_state(f"time jump on {topic}")
+                self.get_logger().warning(
+                    f"time jump: {topic} stamp {stamp / 1e9:.3f} s is {(newest - stamp) / 1e9:.3f} s older than "
+                    f"the newest seen ({newest / 1e9:.3f} s; bag loop or simulator reset?): pairing, tracking and "
+                    "topic guesses reset")
             with self._lock:
+                self._newest[topic] = stamp if self._newest[topic] is None else max(self._newest[topic], stamp)
                 add = self._sync.add_source if topic == SOURCE else self._sync.add_target
                 pair, drops = add(stamp, _Cloud(msg, frame, now))
                 slop = self._sync.slop_ns / 1e9
@@ -219,15 +401,25 @@ class RegisterNode(Node):
         self._stats.callback.append(time.monotonic() - now)
 
     def _on_guess(self, msg: TransformStamped) -> None:
+        self._set_guess(msg, msg.header.frame_id, msg.child_frame_id, "initial_guess")
+
+    def _on_initialpose(self, msg: PoseWithCovarianceStamped) -> None:
+        self._set_guess(msg.pose, msg.header.frame_id, None, "initialpose")
+
+    def _set_guess(self, msg: Any, parent: str, child: str | None, origin: str) -> None:
         try:
-            self._guess_topic = msg_to_matrix(msg)
+            T = msg_to_matrix(msg)
         except ValueError as exc:
-            self._drop("bad_initial_guess", f"initial_guess message ignored: {exc}")
+            self._drop("bad_initial_guess", f"{origin} message ignored: {exc}")
+            return
+        with self._lock:
+            self._guess = _Guess(T, parent, child, time.monotonic(), origin)
 
     # ----------------------------------------------------------------- worker
     def _work(self) -> None:
-        while not self._slot.closed:
-            pair = self._slot.take(timeout=0.5)
+        slot = self._slot
+        while not slot.closed:
+            pair = slot.take(timeout=0.5)
             if pair is None:
                 continue
             try:
@@ -236,7 +428,7 @@ class RegisterNode(Node):
                 self._fail("internal_error", f"unexpected {type(exc).__name__}: {exc}")
 
     def _process(self, pair: Pair) -> None:
-        c = self._config
+        c, registrar, generation = self._config, self._registrar, self._generation
         src_cloud, tgt_cloud = pair.source, pair.target
         t0 = time.perf_counter()
         try:
@@ -246,70 +438,139 @@ class RegisterNode(Node):
             return
         t1 = time.perf_counter()
         try:
-            tgt_points, t_tgt = self._decode_target(tgt_cloud.msg, c.max_points, c.preprocess)
+            tgt_points, t_tgt = self._decode_target(tgt_cloud, c.max_points, c.preprocess)
         except PointCloud2Error as exc:
             self._drop(exc.reason, f"target cloud: {exc}")
             return
         t2 = time.perf_counter()
         src_points = preprocess(src.points, c.preprocess)
-        if self._registrar.config != (cfg := c.registration_config()):
-            self._registrar.config = cfg
+        if registrar.config != (cfg := c.registration_config()):
+            registrar.config = cfg
+        guess, guess_origin = self._initial_guess(c, src_cloud.frame, tgt_cloud.frame)
+        if c.target_crop_radius > 0 and (self._fixed is not None or self._sync.mode == "latest_target"):
+            tgt_points = self._crop_target(tgt_points, src_points, guess, c.target_crop_radius)
         t3 = time.perf_counter()
         try:
-            result = self._registrar.register(src_points, tgt_points, initial_guess=self._initial_guess(c))
+            result = registrar.register(src_points, tgt_points, initial_guess=guess)
         except GenRegError as exc:
             self._fail(_snake(type(exc).__name__), f"registration failed: {exc}")
             return
         t4 = time.perf_counter()
-        if result.fitness < c.min_fitness:
-            self._fail("low_fitness", f"fitness {result.fitness:.3f} < min_fitness {c.min_fitness}")
-            return
         T_target_source = result.transformation
         header = Header(stamp=src_cloud.msg.header.stamp, frame_id=tgt_cloud.frame)
+        reject = ""
+        if result.fitness < c.min_fitness:
+            reject = "low_fitness", f"fitness {result.fitness:.3f} < min_fitness {c.min_fitness}"
+        elif result.confidence < c.min_confidence:
+            reject = "low_confidence_rejected", f"confidence {result.confidence:.3f} < min_confidence {c.min_confidence}"
+        low_confidence = not reject and result.confidence < c.warn_confidence
+        latency = time.monotonic() - max(src_cloud.received, tgt_cloud.received)
+        self._pubs["registration_status"].publish(self._result_status(
+            result, header, src_cloud.frame, guess_origin, latency, reject[1] if reject else "", low_confidence))
+        if reject:
+            self._fail(*reject)
+            return
         aligned = transform_cloud(header, src, T_target_source)
         transform = matrix_to_msg(T_target_source, header, src_cloud.frame)
+        pose = matrix_to_pose_msg(T_target_source, header, getattr(result, "covariance", None))
         t5 = time.perf_counter()
-        self._pub_aligned.publish(aligned)
-        self._pub_transform.publish(transform)
+        self._pubs["aligned_cloud"].publish(aligned)
+        self._pubs["transform"].publish(transform)
+        self._pubs["pose"].publish(pose)
         if self._tf_broadcaster is not None:
             self._tf_broadcaster.sendTransform(transform)
         if c.publish_generated:
-            self._pub_generated.publish(xyz_to_msg(header, result.source_generated))
+            self._pubs["generated_cloud"].publish(xyz_to_msg(header, result.source_generated))
         t6 = time.perf_counter()
-        low_confidence = result.confidence < c.warn_confidence
         if low_confidence:  # published, yet flagged: a user must not mistake it for a good result
             self._warn("low_confidence", f"published a low-confidence result: confidence {result.confidence:.2f} < "
                        f"warn_confidence {c.warn_confidence} (fitness {result.fitness:.2f})")
-        self._last_T = T_target_source  # the start of the next pair when use_last_result_as_guess is set
-        latency = time.monotonic() - max(src_cloud.received, tgt_cloud.received)
+        with self._lock:
+            if generation == self._generation:  # no reset since the pair was taken
+                self._last_T, self._last_T_time = T_target_source, time.monotonic()
         overhead = (t1 - t0) + t_tgt + (t6 - t4)
         self._stats.ok(latency, overhead, {
             "fitness": result.fitness, "confidence": result.confidence, "inlier_rmse_m": result.inlier_rmse,
             "decode_ms": 1e3 * ((t1 - t0) + t_tgt), "preprocess_ms": 1e3 * ((t3 - t2) + (t2 - t1 - t_tgt)),
             "register_ms": 1e3 * (t4 - t3), "encode_ms": 1e3 * (t5 - t4), "publish_ms": 1e3 * (t6 - t5),
             "points_in": float(src.num_input), "points_registered": float(len(src_points)),
-            "initial_guess_won": float(result.start == "initial_guess"),  # the refine guard replaced GenReg
+            "points_target": float(len(tgt_points)),
+            "initial_guess_won": float(result.start == "initial_guess"),  # refinement from the guess won
         }, low_confidence)
 
-    def _decode_target(self, msg: PointCloud2, max_points: int, pre: PreprocessConfig) -> tuple[np.ndarray, float]:
-        """Preprocessed target points and the decoding time, cached while the same message is reused
-        (latest_target)."""
+    def _result_status(self, result, header: Header, source_frame: str, guess_origin: str, latency: float,
+                       rejected: str, low_confidence: bool) -> DiagnosticArray:
+        """The per-result `registration_status` message (header: the source stamp and the target frame)."""
+        level = DiagnosticStatus.ERROR if rejected else DiagnosticStatus.WARN if low_confidence else DiagnosticStatus.OK
+        message = f"rejected: {rejected}" if rejected else "published with low confidence" if low_confidence \
+            else "published"
+        values = {
+            "confidence": f"{result.confidence:.4f}", "fitness": f"{result.fitness:.4f}",
+            "inlier_ratio": f"{result.inlier_ratio:.4f}", "inlier_rmse_m": f"{result.inlier_rmse:.6f}",
+            "start": result.start, "initial_guess": guess_origin, "published": str(not rejected).lower(),
+            "source_frame": source_frame, "target_frame": header.frame_id, "latency_ms": f"{1e3 * latency:.1f}",
+        }
+        status = DiagnosticStatus(level=level, name=f"{self.get_name()}: result", message=message,
+                                  hardware_id=self.get_fully_qualified_name(),
+                                  values=[KeyValue(key=k, value=v) for k, v in values.items()])
+        return DiagnosticArray(header=header, status=[status])
+
+    def _decode_target(self, target: _Cloud | _FixedTarget, max_points: int,
+                       pre: PreprocessConfig) -> tuple[np.ndarray, float]:
+        """Preprocessed target points and the decoding time, cached while the same target is reused
+        (latest_target, target_file)."""
+        key = target.msg if isinstance(target, _Cloud) else target
         cache = self._target_cache
-        if cache is not None and cache[0] is msg and cache[3] == pre:
-            return cache[2], 0.0
+        if cache is not None and cache[0] is key and cache[2] == pre:
+            return cache[1], 0.0
         t0 = time.perf_counter()
-        decoded = read_points(msg, max_points)
+        points = read_points(target.msg, max_points).points if isinstance(target, _Cloud) else target.points
         t_decode = time.perf_counter() - t0
-        points = preprocess(decoded.points, pre)
-        self._target_cache = (msg, decoded, points, pre)
+        points = preprocess(points, pre)
+        self._target_cache = (key, points, pre)
         return points, t_decode
 
-    def _initial_guess(self, c: NodeConfig) -> np.ndarray | None:
-        if self._guess_topic is not None:
-            return self._guess_topic
-        if c.use_last_result_as_guess and self._last_T is not None:
-            return self._last_T
-        return c.initial_guess_matrix()
+    def _crop_target(self, target: np.ndarray, source: np.ndarray, guess: np.ndarray | None,
+                     radius: float) -> np.ndarray:
+        """The fixed target's points within `radius` of the source's centre moved by the pose estimate (the
+        guess, else the last result); the whole target without an estimate or if too few points are left."""
+        T = guess if guess is not None else self._last_T
+        if T is None or len(source) == 0:
+            return target
+        centre = T[:3, :3] @ source.mean(axis=0) + T[:3, 3]
+        kept = target[np.einsum("ij,ij->i", target - centre, target - centre) <= radius * radius]
+        if len(kept) < MIN_CROPPED_TARGET:
+            self._warn("target_crop", f"target_crop_radius {radius} m keeps {len(kept)} target points around the "
+                       "predicted source position; registering against the whole target")
+            return target
+        return kept
+
+    def _initial_guess(self, c: NodeConfig, source_frame: str, target_frame: str) -> tuple[np.ndarray | None, str]:
+        """The start of this pair's registration and where it came from: a topic guess (unless expired,
+        or older than the last result when tracking), the last result (use_last_result_as_guess), the
+        parameter, or none."""
+        with self._lock:
+            g, last_T, last_time = self._guess, self._last_T, self._last_T_time
+        now = time.monotonic()
+        if g is not None and c.initial_guess_timeout > 0 and now - g.received > c.initial_guess_timeout:
+            self._clear_guess(g)
+            self.get_logger().info(f"{g.origin} guess expired ({now - g.received:.1f} s > initial_guess_timeout "
+                                   f"{c.initial_guess_timeout} s)")
+        elif g is not None and (g.parent != target_frame or g.child not in (None, source_frame)):
+            self._clear_guess(g)
+            self._drop("initial_guess_frames", f"{g.origin} guess ignored: it maps {g.child or '(any)'} into "
+                       f"'{g.parent}', the pair maps '{source_frame}' into '{target_frame}'")
+        elif g is not None and not (c.use_last_result_as_guess and last_time > g.received):
+            return g.T, g.origin
+        if c.use_last_result_as_guess and last_T is not None:
+            return last_T, "last_result"
+        T = c.initial_guess_matrix()
+        return T, "none" if T is None else "parameter"
+
+    def _clear_guess(self, g: _Guess) -> None:
+        with self._lock:
+            if self._guess is g:
+                self._guess = None
 
     # ----------------------------------------------------------------- drops, failures, diagnostics
     def _drop(self, reason: str, text: str) -> None:
@@ -328,31 +589,52 @@ class RegisterNode(Node):
 
     def _publish_diagnostics(self) -> None:
         c = self._config
-        status, stale = build_status(self._stats.snapshot(), time.monotonic(), self.get_name(),
-                                     self.get_fully_qualified_name(), c.diagnostics.stale_timeout,
-                                     c.warn_confidence)
+        snap, now, state = self._stats.snapshot(), time.monotonic(), self.state
+        silent = self._silent_publishers(snap, now, c.diagnostics.stale_timeout) if state == "active" else []
+        fixed = self._fixed is not None or (self._sync.mode == "latest_target" and snap.last_arrival[TARGET] is not None)
+        status, stale = build_status(snap, now, self.get_name(), self.get_fully_qualified_name(),
+                                     c.diagnostics.stale_timeout, c.warn_confidence, state, fixed, silent)
         for topic, note in stale.items():
-            if topic not in self._stale:
-                self.get_logger().warning(f"{note} (topic {self._topic(topic)})")
+            if topic not in self._stale and topic in self._subs:
+                self.get_logger().warning(f"{note} (topic {self._subs[topic].topic_name})")
         self._stale = set(stale)
         self._pub_diag.publish(DiagnosticArray(header=Header(stamp=self.get_clock().now().to_msg()), status=[status]))
 
-    def _topic(self, topic: str) -> str:
-        return (self._sub_source if topic == SOURCE else self._sub_target).topic_name
+    def _silent_publishers(self, snap, now: float, timeout: float) -> list[str]:
+        """Notes for input topics with a publisher that has delivered nothing (since activation) for
+        `timeout` s since it appeared; each is also warned once, with the likely cause."""
+        notes = []
+        for topic in (SOURCE, TARGET):
+            sub = self._subs.get(topic)
+            if sub is None:
+                continue
+            infos = self.get_publishers_info_by_topic(sub.topic_name)
+            last = snap.last_arrival[topic]
+            if not infos:
+                self._matched_since[topic] = None
+                continue
+            since = self._matched_since[topic] = self._matched_since[topic] or now
+            if last is not None or now - since <= timeout:
+                continue
+            kinds = sorted({i.qos_profile.reliability.name.lower() for i in infos})
+            note = f"{len(infos)} publisher(s) on {sub.topic_name} ({', '.join(kinds)}) but no {topic} cloud for " \
+                   f"{now - since:.1f} s"
+            notes.append(note)
+            if topic not in self._silent_warned:
+                self._silent_warned.add(topic)
+                cause = ("large best-effort clouds are lost between processes without the shipped Fast DDS "
+                         "profile config/fastdds_large_clouds.xml in EVERY process (FASTDDS_DEFAULT_PROFILES_FILE), "
+                         "and clouds above its limit are lost even with it")
+                if "best_effort" in kinds and self._config.qos.reliability == "reliable":
+                    cause = "a best-effort publisher does not match this node's reliable subscription (qos.reliability); " + cause
+                self.get_logger().warning(f"{note}: likely cause: {cause}; see {DOCS} (Large clouds)")
+        return notes
 
     # ----------------------------------------------------------------- shutdown
     def close(self) -> None:
         """Stop the worker (waits for the pair being registered) and destroy the node."""
-        self._slot.close()
-        self._worker.join(timeout=10.0)
+        self._release()
         self.destroy_node()
-
-
-def _qos_dict(profile: QoSProfile) -> dict[str, Any]:
-    return {
-        "history": profile.history, "depth": profile.depth, "reliability": profile.reliability,
-        "durability": profile.durability,
-    }
 
 
 def _error(text: str) -> int:
@@ -375,7 +657,7 @@ def main(argv: list[str] | None = None) -> int:
     node = None
     try:
         node = RegisterNode()
-        rclpy.spin(node)
+        rclpy.spin_until_future_complete(node, node.finalized)
     except StartupError as exc:
         return _error(str(exc))
     except (KeyboardInterrupt, ExternalShutdownException):

@@ -10,6 +10,7 @@ before rcl reads it: unknown keys, wrong types and invalid values are one-line e
 
 from __future__ import annotations
 
+import difflib
 import fnmatch
 import math
 import types
@@ -185,6 +186,35 @@ def build(values: dict[str, Any], where: str = "") -> NodeConfig:
         raise ParamError(where + str(exc)) from None
 
 
+def unknown_text(name: str) -> str:
+    """"unknown parameter 'x' (did you mean y?)": the one wording for -p, params files and overrides."""
+    near = [n for n in BY_NAME if n.split(".")[-1] == name.split(".")[-1]]
+    near = near or difflib.get_close_matches(name, list(BY_NAME), n=1, cutoff=0.8)
+    return f"unknown parameter '{name}'" + (f" (did you mean {near[0]}?)" if near else "")
+
+
+def check_overrides(node: Node) -> None:
+    """ParamError naming the first parameter given to `node` (-p, a params file, parameter_overrides) that
+    it does not declare; rclpy itself ignores them silently. Call after `declare`."""
+    for name in node._parameter_overrides:  # rclpy keeps the overrides there (no public accessor)
+        if not node.has_parameter(name) and not any(fnmatch.fnmatchcase(name, b) for b in BUILTIN):
+            raise ParamError(unknown_text(name))
+
+
+def coerce_arrays(params: list[Parameter]) -> list[Parameter]:
+    """A pre-set callback: an empty array of any type (what `ros2 param set NODE initial_guess []` sends: a
+    bool array) or an integer array for a list-of-doubles setting becomes a double array."""
+    out = []
+    for p in params:
+        s = BY_NAME.get(p.name)
+        if s is not None and ros_kind(s) is DOUBLE_ARRAY and isinstance(p.value, (list, tuple)) and (
+            len(p.value) == 0 or p.type_ == Parameter.Type.INTEGER_ARRAY
+        ):
+            p = Parameter(p.name, Parameter.Type.DOUBLE_ARRAY, [float(v) for v in p.value])
+        out.append(p)
+    return out
+
+
 def make_validator(current: Callable[[], NodeConfig]):
     """An on-set-parameters callback that rejects bad values with a reason; `current()` gives the config
     in force (types and ranges first go through rclpy's descriptor checks)."""
@@ -228,9 +258,7 @@ def check_params_file(path: str, node_fqn: str) -> None:
             if any(fnmatch.fnmatchcase(name, b) for b in BUILTIN):
                 continue
             if name not in BY_NAME:
-                near = [n for n in BY_NAME if n.split(".")[-1] == name.split(".")[-1]]
-                hint = f" (did you mean {near[0]}?)" if near else ""
-                raise ParamError(f"params file {path}: unknown parameter '{name}'{hint}")
+                raise ParamError(f"params file {path}: {unknown_text(name)}")
             values[name] = value
     build(values, f"params file {path}: ")
 

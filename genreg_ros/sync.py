@@ -88,11 +88,14 @@ class PairSync:
             return None, []
         return self._add(TARGET, stamp, item)
 
-    def clear(self) -> None:
-        """Forget every held message (not counted as drops)."""
+    def clear(self, keep_latest_target: bool = False) -> None:
+        """Forget every held message and the newest stamps seen (not counted as drops); in latest_target
+        mode the reference target stays if `keep_latest_target`."""
         for q in self._queues.values():
             q.clear()
-        self._latest_target = None
+        self._newest = {SOURCE: None, TARGET: None}
+        if not keep_latest_target:
+            self._latest_target = None
 
     def _add(self, topic: str, stamp: int, item: Any) -> tuple[Pair | None, list[Drop]]:
         other = TARGET if topic == SOURCE else SOURCE

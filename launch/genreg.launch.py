@@ -3,6 +3,10 @@
     ros2 launch genreg_ros genreg.launch.py source:=/lidar/points target:=/map/points
     ros2 launch genreg_ros genreg.launch.py params_file:=/path/to/my.yaml large_clouds:=true
 
+The default params file is config/genreg.yaml (depth-camera scenes, model 7scenes); for object models pass
+params_file:=$(ros2 pkg prefix genreg_ros)/share/genreg_ros/config/genreg_objects.yaml. The node is a
+lifecycle node that configures and activates itself (autostart true in both files).
+
 Set ROS_AUTOMATIC_DISCOVERY_RANGE and ROS_DOMAIN_ID in the shell that launches (see docs/ros_node.md).
 `large_clouds:=true` points Fast DDS at the shipped shared-memory profile for multi-MB best-effort clouds;
 the processes on the other end of the topics need the same FASTDDS_DEFAULT_PROFILES_FILE.

@@ -107,6 +107,7 @@ def overhead(args) -> None:
     with node.stats.lock:
         history = list(node.stats.history)[2:]
         callbacks = list(node.stats.callback)[4:]
+        latency = list(node.stats.latency)[2:]
     assert len(history) == args.pairs and all(w == src.width for w in got), "not every pair was registered"
     cb = 2e3 * med(callbacks)
     parts = {k: med([h[k] for h in history]) for k in ("decode_ms", "encode_ms", "publish_ms")}
@@ -118,6 +119,8 @@ def overhead(args) -> None:
     print(f"  overhead total (median per pair) {med(total):7.2f} ms   [{'OK' if med(total) <= 15 else 'ABOVE GOAL'}]")
     print(f"  for reference: preprocess {med([h['preprocess_ms'] for h in history]):.2f} ms, "
           f"registration {med([h['register_ms'] for h in history]):.1f} ms")
+    p50, p95 = (1e3 * float(np.percentile(latency, q)) for q in (50, 95))
+    print(f"  node latency (later cloud's arrival -> published) p50 {p50:.1f} ms, p95 {p95:.1f} ms")
     executor.shutdown()
     spinner.join(timeout=5)
     node.close()

@@ -20,7 +20,8 @@ if [ ! -f "$STAMP" ] || [ "$(cat "$STAMP")" != "$REQ_HASH" ]; then
   pip install -q numpy scipy open3d small_gicp rosbags mcap tqdm matplotlib pytest ruff pyyaml pillow \
     colcon-common-extensions
   pip install -q ros-kilted-rclpy ros-kilted-rmw-fastrtps-cpp ros-kilted-sensor-msgs \
-    ros-kilted-geometry-msgs ros-kilted-diagnostic-msgs
+    ros-kilted-geometry-msgs ros-kilted-diagnostic-msgs ros-kilted-lifecycle-msgs ros-kilted-rcl-lifecycle \
+    ros-kilted-std-srvs
   [ -f setup.py ] && pip install -q --no-deps -e .
   echo "$REQ_HASH" > "$STAMP"
 fi

@@ -11,17 +11,19 @@ guess registers its 25-degree transform.
 
 from __future__ import annotations
 
+import signal
 import subprocess
 import sys
 import threading
 import time
 from contextlib import contextmanager
+from pathlib import Path
 
 import numpy as np
 import pytest
 import rclpy
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
-from geometry_msgs.msg import TransformStamped
+from geometry_msgs.msg import PoseWithCovarianceStamped, TransformStamped
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.parameter import Parameter
 from rclpy.qos import QoSProfile, ReliabilityPolicy
@@ -127,14 +129,20 @@ class Harness:
         self.pub_source = self.helper.create_publisher(PointCloud2, "source_cloud", qos)
         self.pub_target = self.helper.create_publisher(PointCloud2, "target_cloud", qos)
         self.pub_guess = self.helper.create_publisher(TransformStamped, "initial_guess", 1)
+        self.pub_initialpose = self.helper.create_publisher(PoseWithCovarianceStamped, "initialpose", 1)
         self.aligned: list[PointCloud2] = []
         self.transforms: list[TransformStamped] = []
         self.generated: list[PointCloud2] = []
+        self.poses: list[PoseWithCovarianceStamped] = []
+        self.results: list[DiagnosticArray] = []  # registration_status
         self.diagnostics: list[DiagnosticArray] = []
+        self._clients: dict[str, object] = {}
         self.fqn = node.get_fully_qualified_name() if node else f"{namespace}/register_node"
         self.helper.create_subscription(PointCloud2, "aligned_cloud", self._rec(self.aligned), 10)
         self.helper.create_subscription(TransformStamped, "transform", self._rec(self.transforms), 10)
         self.helper.create_subscription(PointCloud2, "generated_cloud", self._rec(self.generated), 10)
+        self.helper.create_subscription(PoseWithCovarianceStamped, "pose", self._rec(self.poses), 10)
+        self.helper.create_subscription(DiagnosticArray, "registration_status", self._rec(self.results), 10)
         self.helper.create_subscription(DiagnosticArray, "/diagnostics", self._on_diag, 10)
         self.executor = SingleThreadedExecutor(context=ctx)
         for n in (node, self.helper):
@@ -185,6 +193,33 @@ class Harness:
         with self.lock:
             return next(s for s in self.diagnostics[-1].status if s.hardware_id == self.fqn)
 
+    def result_for(self, source_stamp: Header, timeout=10.0) -> DiagnosticStatus:
+        """The registration_status published for the source with this stamp."""
+        key = (source_stamp.stamp.sec, source_stamp.stamp.nanosec)
+        find = lambda: [m for m in self.results if (m.header.stamp.sec, m.header.stamp.nanosec) == key]
+        self.wait(find, timeout, f"registration_status stamped {key}")
+        with self.lock:
+            return find()[-1].status[0]
+
+    def call(self, srv_type, name: str, request=None, timeout=60.0):
+        """Call service `name` (relative to the node: '<node>/<name>') and return the response."""
+        full = f"{self.fqn}/{name}"
+        client = self._clients.get(full) or self._clients.setdefault(full, self.helper.create_client(srv_type, full))
+        assert client.wait_for_service(timeout_sec=10.0), f"service {full} not available"
+        future = client.call_async(request or srv_type.Request())
+        deadline = time.monotonic() + timeout
+        while not future.done():
+            assert time.monotonic() < deadline, f"no answer from {full}"
+            time.sleep(0.01)
+        return future.result()
+
+    def set_remote(self, *parameters: Parameter):
+        """Set the node's parameters through its set_parameters service (as `ros2 param set` does)."""
+        from rcl_interfaces.srv import SetParameters
+
+        request = SetParameters.Request(parameters=[p.to_parameter_msg() for p in parameters])
+        return self.call(SetParameters, "set_parameters", request).results
+
     def counters(self) -> dict[str, str]:
         return diag_values(self.status(after=time.monotonic()))
 
@@ -205,6 +240,8 @@ class Harness:
             assert self.node.set_parameters_atomically(saved).successful
 
     def close(self):
+        for client in self._clients.values():
+            self.helper.destroy_client(client)
         self.executor.shutdown(timeout_sec=2.0)
         self.thread.join(timeout=5.0)
         if self.node is not None:
@@ -555,6 +592,56 @@ def _tf2_available() -> bool:
 # --------------------------------------------------------------------------- cross-process
 def node_cmd(*ros_args: str) -> list[str]:
     return [sys.executable, "-m", "genreg_ros.node", "--ros-args", *ros_args]
+
+
+@contextmanager
+def node_process(namespace: str, log_path: Path, params: dict, before=None, ready=True):
+    """register_node in its own process (`python -m genreg_ros.node`) under `namespace` with `params`, and
+    a Harness client of this process. `before(harness)` runs before the node starts; with `ready` the
+    node's first diagnostics are awaited. Yields (harness, process, log path); stops the node with SIGINT
+    and checks it exits cleanly."""
+    args = [a for k, v in params.items() for a in ("-p", f"{k}:={v}")]
+    ctx = rclpy.Context()
+    rclpy.init(context=ctx)
+    h = Harness(ctx, namespace, None)
+    proc = None
+    try:
+        if before is not None:
+            before(h)
+        with log_path.open("w") as log:
+            proc = subprocess.Popen(node_cmd("-r", f"__ns:={namespace}", *args), stdout=log, stderr=subprocess.STDOUT)
+        if ready:
+            h.wait(lambda: h.diagnostics or proc.poll() is not None, 60.0, "the node's diagnostics (start-up)")
+            assert proc.poll() is None, log_path.read_text()
+        yield h, proc, log_path
+    finally:
+        h.close()
+        rclpy.shutdown(context=ctx)
+        if proc is not None:
+            if proc.poll() is None:
+                proc.send_signal(signal.SIGINT)
+            rc = proc.wait(timeout=30)
+            out = log_path.read_text()
+            assert rc == 0, out
+            assert "Traceback" not in out, out
+
+
+def wait_subscribed(h: Harness, *publishers, timeout=15.0) -> None:
+    """Wait until the node's subscriptions have matched these publishers of the harness."""
+    deadline = time.monotonic() + timeout
+    while any(p.get_subscription_count() == 0 for p in publishers):
+        assert time.monotonic() < deadline, "node subscriptions not discovered"
+        time.sleep(0.05)
+    time.sleep(0.3)
+
+
+def test_unknown_parameter_from_the_command_line_exits_1_with_one_line(ns):
+    cmd = node_cmd("-r", f"__ns:={ns}", "-p", "model.checkpont:=7scenes")
+    proc = subprocess.run(cmd, capture_output=True, text=True, timeout=60, check=False)
+    assert proc.returncode == 1, proc.stderr
+    assert "Traceback" not in proc.stderr and len(proc.stderr.strip().splitlines()) == 1, proc.stderr
+    assert proc.stderr.strip() == (
+        "register_node: error: unknown parameter 'model.checkpont' (did you mean model.checkpoint?)")
 
 
 def run_fails(cmd, timeout=60) -> str:

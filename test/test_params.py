@@ -1,8 +1,10 @@
-"""register_node's parameters are derived from the config dataclasses; config/genreg.yaml is generated from them."""
+"""register_node's parameters are derived from the config dataclasses; config/genreg.yaml (scenes) and
+config/genreg_objects.yaml (objects) are generated from them."""
 
 from __future__ import annotations
 
 import dataclasses
+import re
 from pathlib import Path
 
 import pytest
@@ -12,9 +14,10 @@ from genreg_core.config import PDSACConfig, RefineConfig, RegistrationConfig, se
 from genreg_core.errors import ConfigError
 from genreg_core.preprocess import PreprocessConfig
 from genreg_ros import params
-from genreg_ros.config import SETTINGS, NodeConfig, yaml_text
+from genreg_ros.config import PROFILES, SCENE_OVERRIDES, SETTINGS, NodeConfig, defaults, yaml_text
 
-PARAMS_FILE = Path(__file__).resolve().parent.parent / "config" / "genreg.yaml"
+CONFIG = Path(__file__).resolve().parent.parent / "config"
+PARAMS_FILE = CONFIG / "genreg.yaml"
 
 
 def _flatten(d: dict, prefix: str = "") -> dict:
@@ -24,16 +27,45 @@ def _flatten(d: dict, prefix: str = "") -> dict:
     return out
 
 
-def test_params_file_is_the_generated_one():
-    assert PARAMS_FILE.read_text() == yaml_text(), (
-        "config/genreg.yaml is out of date: python -m genreg_ros.config --write-yaml config/genreg.yaml")
+@pytest.mark.parametrize("name", list(PROFILES))
+def test_params_files_are_the_generated_ones(name):
+    assert (CONFIG / name).read_text() == yaml_text(name), (
+        f"config/{name} is out of date: python -m genreg_ros.config --write")
 
 
-def test_params_file_names_and_defaults_match_the_dataclasses():
-    doc = yaml.safe_load(PARAMS_FILE.read_text())
+@pytest.mark.parametrize("name", list(PROFILES))
+def test_params_file_names_and_values_match_the_dataclasses(name):
+    doc = yaml.safe_load((CONFIG / name).read_text())
     in_file = _flatten(doc["/**"]["ros__parameters"])
-    assert in_file == {s.name: params.to_ros(s, s.default) for s in SETTINGS}
+    assert in_file == {s.name: params.to_ros(s, defaults(name)[s.name]) for s in SETTINGS}
     assert all(s.help for s in SETTINGS)
+    params.check_params_file(str(CONFIG / name), "/register_node")
+
+
+def test_scene_file_is_for_the_scene_model_and_objects_file_for_the_object_model():
+    assert defaults("genreg.yaml")["model.checkpoint"] == SCENE_OVERRIDES["model.checkpoint"] == "7scenes"
+    assert defaults("genreg_objects.yaml")["model.checkpoint"] == NodeConfig().model.checkpoint == "modelnet40"
+
+
+def test_distance_settings_are_metres_with_auto():
+    for name in ("pdsac.inlier_threshold", "refine.max_correspondence_distance", "refine.guard_distance"):
+        s = params.BY_NAME[name]
+        assert s.default == 0.0 and "auto" in s.help and re.search(r"\bm\b", s.help), (name, s.help)
+
+
+def test_unknown_parameter_text_suggests_the_nearest():
+    assert params.unknown_text("model.checkpont") == (
+        "unknown parameter 'model.checkpont' (did you mean model.checkpoint?)")
+    assert params.unknown_text("bogus") == "unknown parameter 'bogus'"
+
+
+def test_empty_arrays_of_any_type_become_double_arrays():
+    from rclpy.parameter import Parameter
+
+    (p,) = params.coerce_arrays([Parameter("initial_guess", Parameter.Type.BOOL_ARRAY, [])])
+    assert p.type_ == Parameter.Type.DOUBLE_ARRAY and p.value == []
+    (p,) = params.coerce_arrays([Parameter("preprocess.crop_max", Parameter.Type.INTEGER_ARRAY, [1, 2, 3])])
+    assert p.type_ == Parameter.Type.DOUBLE_ARRAY and list(p.value) == [1.0, 2.0, 3.0]
 
 
 def test_node_defaults_are_the_core_defaults_except_refinement():

@@ -61,7 +61,8 @@ def resolve_like_ros2_run(env: dict[str, str], package: str, executable: str) ->
 
 def test_install_layout(install_prefix):
     share = install_prefix / "share" / PKG
-    for rel in ("package.xml", "config/genreg.yaml", "config/fastdds_large_clouds.xml", "launch/genreg.launch.py"):
+    for rel in ("package.xml", "config/genreg.yaml", "config/genreg_objects.yaml", "config/fastdds_large_clouds.xml",
+                "launch/genreg.launch.py"):
         assert (share / rel).is_file(), rel
     assert (install_prefix / "share/ament_index/resource_index/packages" / PKG).is_file()
     assert (install_prefix / "lib" / PKG / EXE).is_file()
