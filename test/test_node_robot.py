@@ -44,7 +44,8 @@ STALE_TIMEOUT = 1.0
 
 @pytest.fixture(scope="module")
 def robot(ros_namespace, tmp_path_factory):
-    params = {**TEST_PARAMS, "model.checkpoint": SHIPPED_MODEL, "diagnostics.stale_timeout": STALE_TIMEOUT}
+    params = {**TEST_PARAMS, "model.checkpoint": SHIPPED_MODEL, "refine.method": "gicp",  # as config/genreg.yaml
+              "diagnostics.stale_timeout": STALE_TIMEOUT}
     log = tmp_path_factory.mktemp("robot") / "node.log"
     with node_process(f"{ros_namespace}/robot", log, params) as (h, _proc, log_path):
         wait_subscribed(h, h.pub_source, h.pub_target)
@@ -123,9 +124,6 @@ def sun3d_pair(t: float):
     return xyz_to_msg(hs, src_pts), xyz_to_msg(ht, tgt_pts), seq.relative_pose(935, 955)
 
 
-# TODO(lead): remove the marker once the core's guess refinement holds the ground truth (issue 14). Measured
-# with the core of this writing: RE 1.42 deg, TE 12.5 cm (the guess's start wins, ICP drifts from it).
-@pytest.mark.xfail(reason="core: refinement from the ground-truth guess drifts (1.42 deg / 12.5 cm)", strict=False)
 def test_ground_truth_guess_on_sun3d_is_within_1_deg_and_3_cm(robot):
     h, _ = robot
     src, tgt, T_true = sun3d_pair(7000.0)
@@ -220,4 +218,4 @@ def test_min_confidence_rejects_and_says_so(robot):
         assert _count(h.aligned, src.header) == 0 and _count(h.poses, src.header) == 0
         assert h.delta(before, "failed.low_confidence_rejected") == 1 and h.delta(before, "registered") == 0
     finally:
-        assert h.set_remote(Parameter("min_confidence", value=0.0))[0].successful
+        assert h.set_remote(Parameter("min_confidence", value=TEST_PARAMS["min_confidence"]))[0].successful
