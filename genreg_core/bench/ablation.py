@@ -225,7 +225,7 @@ def run_backbone_dataset(
     first = pairs[indices[0]]
     for method in methods.values():  # first-call costs stay out of the timings
         method(first["source"], first["target"])
-    records, floors = run_dataset(spec, pairs, indices, methods, options, progress, measure=generation_fields)
+    records, floors, _ = run_dataset(spec, pairs, indices, methods, options, progress, measure=generation_fields)
     return records, {"cd_floor": floors}
 
 

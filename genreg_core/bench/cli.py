@@ -3,6 +3,12 @@
     genreg-bench --suite quick --out runs/bench_quick --threads 2
     genreg-bench --suite smoke --checkpoint /tmp/untrained.pt --out /tmp/bench_smoke
     genreg-bench --ablation pose-solver --datasets modelnet-unseen-clean --max-pairs 20 --out runs/ablation
+    genreg-bench --suite partial --out build/bench_partial --object-checkpoint /root/genreg-runs/x/best.pt
+
+--suite partial: issue 13's partial-overlap tables (RPM-Net-style ModelNet40 pairs, kidnapped redkitchen
+and SUN3D frame pairs at full resolution) with GenReg + point-to-point / point-to-plane ICP beside ICP,
+FPFH + RANSAC + ICP (fast and accurate), KISS-Matcher + ICP and small_gicp; --frame-stride subsamples
+the frames (e.g. 2 for a quicker look).
 
 --ablation runs issue 5's ablations on the suite's datasets instead of the method comparison
 (pose-solver: PDSAC against Open3D RANSAC on the same generated correspondences; backbone: GenReg
@@ -24,6 +30,7 @@ import sys
 import time
 
 ABLATIONS = ("pose-solver", "backbone")  # `ablation.ABLATIONS` (not imported here: torch loads after threads)
+SUITE_NAMES = ("smoke", "quick", "full", "partial")  # `datasets.SUITES` (likewise)
 
 
 def configure_threads(threads: int) -> None:
@@ -42,7 +49,7 @@ def configure_threads(threads: int) -> None:
 
 def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     p = argparse.ArgumentParser(prog="genreg-bench", description=__doc__.split("\n\n")[0])
-    p.add_argument("--suite", default="quick", choices=("smoke", "quick", "full"))
+    p.add_argument("--suite", default="quick", choices=SUITE_NAMES)
     p.add_argument("--out", required=True, help="output folder (report.md, results.json, PNGs)")
     p.add_argument("--threads", type=int, default=2, help="CPU threads for every library (default 2)")
     p.add_argument("--checkpoint", help="GenReg checkpoint (name or path) for objects and scenes")
@@ -53,6 +60,8 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     p.add_argument("--max-pairs", type=int, help="at most this many pairs per dataset")
     p.add_argument("--object-points", type=int, default=512, help="points per ModelNet40 cloud (default 512)")
     p.add_argument("--fmr-points", type=int, default=1024, help="points per FMR-style cloud (default 1024)")
+    p.add_argument("--frame-stride", type=int,
+                   help="real frames: every N-th pixel (default: the suite's, 4 for smoke, else 1 = full resolution)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--confidence-thresholds", type=float, nargs="+", default=[0.5, 0.9],
                    help="report the success rate above/below these confidences (default 0.5 0.9)")
@@ -92,7 +101,7 @@ def main(argv: list[str] | None = None) -> int:
         SCENE: args.scene_checkpoint or args.checkpoint or DEFAULT_CHECKPOINTS[SCENE],
     }
     options = BenchOptions(object_points=args.object_points, fmr_points=args.fmr_points, seed=args.seed,
-                           threads=args.threads, data_root=args.data_root)
+                           threads=args.threads, data_root=args.data_root, frame_stride=args.frame_stride)
     if args.from_json:
         paths = write_report(load_run(args.from_json), args.out, args.confidence_thresholds)
         print(paths["markdown"].read_text())

@@ -3,7 +3,9 @@
 A `Method` maps (source, target) arrays to a `MethodOutput`: the 4x4 target_from_source estimate, its wall
 time (the method's own preprocessing included) and JSON-ready details (GenReg: confidence, fitness, inlier
 ratio and stage timings of `RegistrationResult`). GenReg methods load one checkpoint per dataset kind
-("object", "scene"); `load_each` skips a checkpoint that does not load, with a message.
+("object", "scene"): `genreg` (network + PDSAC), `genreg+icp` and `genreg+p2plane` (the API's point-to-point
+/ point-to-plane refinement with its guard); `load_each` skips a checkpoint that does not load, with a
+message. A suite runs its own methods (`datasets.Suite.methods`), `DEFAULT_METHODS` unless it names them.
 `measure_throughput` times the network + PDSAC stage (`Registrar.estimate`) at batch 1 and batched.
 """
 
@@ -25,9 +27,12 @@ from genreg_core.pdsac import seeded_generator
 from genreg_core.registration import Registrar
 
 DEFAULT_CHECKPOINTS = {OBJECT: "modelnet40", SCENE: "7scenes"}
-GENREG_METHODS = ("genreg", "genreg+icp")
+GENREG_METHODS = ("genreg", "genreg+icp", "genreg+p2plane")
 REFERENCE_METHODS = ("identity",)
 ALL_METHODS = (*REFERENCE_METHODS, *GENREG_METHODS, *BASELINES)
+# The smoke, quick and full suites' methods (the paper tables' comparison).
+DEFAULT_METHODS = ("identity", "genreg", "genreg+icp", "icp-p2p", "icp-p2plane", "fpfh+fgr", "fpfh+ransac",
+                   "fpfh+ransac+icp", "small_gicp")
 
 Loaded = TypeVar("Loaded")
 
@@ -69,11 +74,12 @@ def genreg_method(registrar: Registrar) -> Method:
 
 
 def load_genreg(checkpoint: str, seed: int) -> dict[str, Registrar]:
-    """'genreg' (network + PDSAC) and 'genreg+icp' (the API's point-to-point refinement, default guard) on
-    one model."""
+    """'genreg' (network + PDSAC), 'genreg+icp' and 'genreg+p2plane' (the API's point-to-point or
+    point-to-plane refinement, default settings and guard) on one model."""
     plain = Registrar.from_checkpoint(checkpoint, RegistrationConfig(seed=seed))
-    refine = RegistrationConfig(seed=seed, refine=RefineConfig(method="point_to_point"))
-    return {"genreg": plain, "genreg+icp": Registrar(plain.model, refine)}
+    refined = {name: Registrar(plain.model, RegistrationConfig(seed=seed, refine=RefineConfig(method=method)))
+               for name, method in (("genreg+icp", "point_to_point"), ("genreg+p2plane", "point_to_plane"))}
+    return {"genreg": plain, **refined}
 
 
 def load_each(

@@ -1,13 +1,17 @@
 """Benchmark report: per-dataset tables, GenReg confidence analysis, JSON with every pair, PNG plots.
 
 Inputs are the JSON-ready records of `runner.run_benchmark` (one per pair and method, RE in degrees, TE
-and CD in the dataset's units, seconds of wall time) and the sections of `ablation.run_ablations` (same
-record fields, one table per dataset). Statistics skip NaN (a method that raised); such pairs count as
-failures in the success rate and are listed in the `errors` column.
+and CD in the dataset's units, seconds of wall time, the pair's overlap share, ModelNet40's category) and
+the sections of `ablation.run_ablations` (same record fields, one table per dataset). Statistics skip NaN
+(a method that raised); such pairs count as failures in the success rate and are listed in the `errors`
+column. ModelNet40 tables add RE / TE means and success without the symmetric categories
+(`datasets.SYMMETRIC_CATEGORIES`); datasets whose overlap share varies get a success-by-overlap table
+(`OVERLAP_BINS`) and a panel of `success_vs_overlap.png`.
 """
 
 from __future__ import annotations
 
+import itertools
 import json
 import math
 from collections.abc import Iterable, Sequence
@@ -17,10 +21,13 @@ from typing import Any
 import numpy as np
 from scipy.stats import mannwhitneyu
 
+from genreg_core.bench.datasets import SYMMETRIC_CATEGORIES
 from genreg_core.bench.methods import ALL_METHODS, GENREG_METHODS
 from genreg_core.bench.runner import BenchRun
 
 DEFAULT_CONFIDENCE_THRESHOLDS = (0.5, 0.9)
+OVERLAP_BINS = (0.0, 0.2, 0.4, 0.6, 0.8, 1.0)  # success-by-overlap bins (the last one closed)
+MIN_OVERLAP_SPREAD = 0.1  # a dataset gets the success-by-overlap table and plot when its shares span this
 # Figures the GenReg paper reports for a table of ours (as quoted in issue 6), shown under that table.
 # The paper samples every shape twice from its mesh; here the two clouds are subsets of 1024 given points.
 PAPER_REPORTED = {"modelnet-unseen-clean": {"cd": 0.033, "re_deg": 2.093, "te": 0.008}}
@@ -40,7 +47,9 @@ def method_order(methods: Iterable[str]) -> list[str]:
 def summarize(records: Sequence[dict[str, Any]], cd_floor: Sequence[float] = ()) -> list[dict[str, Any]]:
     """One row per method of one dataset's records (plus a 'ground truth' row with the CD floor).
 
-    Row: method, pairs, errors, cd, re_mean, re_median, te_mean, te_median, success (fraction), ms_median.
+    Row: method, pairs, errors, cd, re_mean, re_median, te_mean, te_median, success (fraction), ms_median;
+    with categories in the records also `asymmetric`: pairs, re_mean, te_mean, success of the pairs outside
+    the symmetric categories.
     """
     rows = []
     if len(cd_floor):
@@ -58,7 +67,49 @@ def summarize(records: Sequence[dict[str, Any]], cd_floor: Sequence[float] = ())
             "success": float(np.mean([bool(r["success"]) for r in rs])),
             "ms_median": 1e3 * _nanstat(col["seconds"], np.median),
         })
+        if any("category" in r for r in rs):
+            rows[-1]["asymmetric"] = _means([r for r in rs if r.get("category") not in SYMMETRIC_CATEGORIES])
     return rows
+
+
+def _means(rs: Sequence[dict[str, Any]]) -> dict[str, Any]:
+    """pairs, re_mean, te_mean and success of some records."""
+    return {"pairs": len(rs), "re_mean": _nanstat([r["re_deg"] for r in rs], np.mean),
+            "te_mean": _nanstat([r["te"] for r in rs], np.mean),
+            "success": float(np.mean([bool(r["success"]) for r in rs])) if rs else float("nan")}
+
+
+def overlap_bin(share: float) -> int:
+    """The index of `share`'s bin in OVERLAP_BINS (the last bin holds 1.0)."""
+    return min(int(np.searchsorted(OVERLAP_BINS, share, side="right")) - 1, len(OVERLAP_BINS) - 2)
+
+
+def varies_in_overlap(info: dict[str, Any]) -> bool:
+    shares = [v for v in info.get("overlap") or [] if v is not None]
+    return len(shares) > 1 and max(shares) - min(shares) >= MIN_OVERLAP_SPREAD
+
+
+def success_by_overlap(records: Sequence[dict[str, Any]]) -> dict[str, list[tuple[int, float]]]:
+    """{method: [(pairs, success rate) per OVERLAP_BINS bin]} of one dataset's records (NaN: empty bin)."""
+    table: dict[str, list[tuple[int, float]]] = {}
+    for m in method_order(r["method"] for r in records):
+        bins: list[list[bool]] = [[] for _ in OVERLAP_BINS[1:]]
+        for r in records:
+            if r["method"] == m and r.get("overlap") is not None:
+                bins[overlap_bin(r["overlap"])].append(bool(r["success"]))
+        table[m] = [(len(b), float(np.mean(b)) if b else float("nan")) for b in bins]
+    return table
+
+
+def overlap_table(records: Sequence[dict[str, Any]]) -> str:
+    """Markdown: success rate per overlap bin (columns, with their pair counts), one row per method."""
+    table = success_by_overlap(records)
+    counts = next(iter(table.values()), [])
+    edges = list(itertools.pairwise(OVERLAP_BINS))
+    head = "| method | " + " | ".join(f"overlap {lo:.1f}-{hi:.1f} ({n[0]})" for (lo, hi), n in zip(edges, counts)) + " |"
+    lines = [head, "|" + "---|" * (1 + len(edges))]
+    lines += [f"| {m} | " + " | ".join(_pct(rate) for _, rate in cells) + " |" for m, cells in table.items()]
+    return "\n".join(lines)
 
 
 def roc_auc(scores: Sequence[float], labels: Sequence[bool]) -> float | None:
@@ -127,11 +178,28 @@ def _pct(x: float | None) -> str:
 
 
 def dataset_table(rows: Sequence[dict[str, Any]], units: str) -> str:
+    """Markdown table of `summarize` rows; with `asymmetric` stats, three columns without the symmetric
+    categories."""
+    asym = any("asymmetric" in r for r in rows)
     head = (f"| method | CD ({units}) | RE mean (deg) | RE median (deg) | TE mean ({units}) | "
-            f"TE median ({units}) | success | ms/pair median |")
-    lines = [head, "|" + "---|" * 8]
-    lines += [f"{_metric_cells(r)} {_f(r['ms_median'], 1)} |" for r in rows]
+            f"TE median ({units}) | success | ms/pair median |"
+            + (" RE mean w/o sym. (deg) | TE mean w/o sym. | success w/o sym. |" if asym else ""))
+    lines = [head, "|" + "---|" * (11 if asym else 8)]
+    for r in rows:
+        line = f"{_metric_cells(r)} {_f(r['ms_median'], 1)} |"
+        if asym:
+            a = r.get("asymmetric")
+            line += (f" {_f(a['re_mean'], 2)} | {_f(a['te_mean'], 4)} | {_pct(a['success'])} |" if a
+                     else " – | – | – |")
+        lines.append(line)
     return "\n".join(lines)
+
+
+def success_text(rule: dict[str, Any]) -> str:
+    """'RE < 5 deg and TE < 0.1' of a stored `datasets.Success` (no TE rule: None or inf in the JSON)."""
+    te = rule.get("max_te")
+    bounded = te is not None and math.isfinite(te)
+    return f"RE < {rule['max_re_deg']:g} deg" + (f" and TE < {te:g}" if bounded else "")
 
 
 def _metric_cells(r: dict[str, Any], digits: int = 4) -> str:
@@ -192,7 +260,7 @@ def ablation_markdown(section: dict[str, Any], threads: int) -> list[str]:
             "",
             (f"{info['pairs']} of {info['available_pairs']} pairs, {info['points_per_cloud']} points per source "
              f"cloud, GenReg checkpoint `{info['checkpoint']}` at N = {info['num_points']}, units: {info['units']}; "
-             f"success: RE < {sr['max_re_deg']:g} deg and TE < {sr['max_te']:g}"
+             f"success: {success_text(sr)}"
              + (f"; network (shared, not in the solver times) {1e3 * _nanstat(network, np.median):.1f} ms median."
                 if network else ".")),
             "",
@@ -222,8 +290,24 @@ def markdown(run: BenchRun, thresholds: Sequence[float] = DEFAULT_CONFIDENCE_THR
         f"mean nearest-neighbour distances, on at most {m['options']['cd_points']} random points per cloud; "
         "the `ground truth` row is the CD at the true pose (the floor)."),
         ("- Success: RE < 5 deg and TE < 0.1 in the unit box; RE < 2 deg and TE < 0.1 m on real (metric) "
-        "frame pairs (TE is taken at the camera origin). `identity` is no registration (the motion in the pairs)."),
+        "frame pairs (TE is taken at the camera origin); RE < 5 deg on the unit sphere (RPM-Net-style pairs); "
+        "RE < 2 deg and TE < 0.05 m on kidnapped frame pairs. `identity` is no registration (the motion in the "
+        "pairs)."),
+        ("- Overlap share of a pair: the share of source points (at most "
+         f"{m['options']['cd_points']} random ones) with a target point within the radius at the true pose: "
+         "5 cm on metric frames, 0.05 on the unit sphere (5 % of the radius), 0.025 in the unit box. Means "
+         f"'w/o sym.' leave out the symmetric ModelNet40 categories ({', '.join(SYMMETRIC_CATEGORIES)})."),
     ]
+    present = {r["method"] for r in run.records}
+    notes = {"genreg+p2plane": "`genreg+p2plane` = the same with point-to-plane ICP",
+             "fpfh+ransac+icp-accurate": ("`fpfh+ransac+icp` on metric frames runs at 5 cm feature voxels (fast), "
+                                          "`fpfh+ransac+icp-accurate` at 2.5 cm (normal and FPFH radii and RANSAC "
+                                          "distance halved too)"),
+             "kiss-matcher+p2plane": ("`kiss-matcher+p2plane` = KISS-Matcher (pip `kiss-matcher`, default gains, "
+                                      "voxel `kiss_voxel_size` of the baseline settings: 5 cm on metric frames) then "
+                                      "point-to-plane ICP")}
+    if present & set(notes):
+        out.append("- " + "; ".join(v for k, v in notes.items() if k in present) + ".")
     if run.datasets:
         out.append("- ms/pair: wall time of one registration at batch 1 (median), each method's preprocessing "
                    "(downsampling, normals, features, resampling) included.")
@@ -231,18 +315,22 @@ def markdown(run: BenchRun, thresholds: Sequence[float] = DEFAULT_CONFIDENCE_THR
         out.append(f"- **Skipped:** {msg}")
     for name, info in run.datasets.items():
         rs = [r for r in run.records if r["dataset"] == name]
-        sr = info["success"]
+        rows = summarize(rs, info["cd_floor"])
+        asym = next((r["asymmetric"]["pairs"] for r in rows if "asymmetric" in r), None)
         out += [
             "",
             f"## {info['title']}",
             "",
             f"{info['pairs']} of {info['available_pairs']} pairs, {info['points_per_cloud']} points per source "
-            f"cloud, units: {info['units']}; success: RE < {sr['max_re_deg']:g} deg and TE < {sr['max_te']:g}; "
+            f"cloud, units: {info['units']}; success: {success_text(info['success'])}; "
             f"GenReg checkpoint `{info['checkpoint']}`" + ("" if info["genreg"] else " (missing: GenReg skipped)")
+            + _overlap_text(info) + (f"; {asym} pairs outside the symmetric categories" if asym is not None else "")
             + ".",
             "",
-            dataset_table(summarize(rs, info["cd_floor"]), info["units"]),
+            dataset_table(rows, info["units"]),
         ]
+        if varies_in_overlap(info):
+            out += ["", f"Success by overlap share (pairs per bin in brackets), `{name}`:", "", overlap_table(rs)]
         if name in PAPER_REPORTED:
             p = PAPER_REPORTED[name]
             out += ["", (f"GenReg paper (CVPR 2022), reported for this setting: CD {p['cd']}, RE {p['re_deg']} deg, "
@@ -272,6 +360,14 @@ def markdown(run: BenchRun, thresholds: Sequence[float] = DEFAULT_CONFIDENCE_THR
     for section in run.ablations:
         out += ablation_markdown(section, th["requested"])
     return "\n".join(out) + "\n"
+
+
+def _overlap_text(info: dict[str, Any]) -> str:
+    shares = [v for v in info.get("overlap") or [] if v is not None]
+    if not shares:
+        return ""
+    return (f"; overlap share (within {info['overlap_radius']:g} {info['units']}) mean {np.mean(shares):.2f}, "
+            f"range {min(shares):.2f}-{max(shares):.2f}")
 
 
 def _clean(value: Any) -> Any:
@@ -323,7 +419,6 @@ def _colors(methods: Sequence[str]) -> dict[str, Any]:
 
 def plot_re_cdf(run: BenchRun, path: Path) -> Path:
     """Cumulative distribution of rotation error per method, one panel per dataset (log RE axis)."""
-    import matplotlib.pyplot as plt
 
     colors = _colors(method_order(r["method"] for r in run.records))
     fig, axes = _grid(len(run.datasets))
@@ -339,9 +434,24 @@ def plot_re_cdf(run: BenchRun, path: Path) -> Path:
         ax.axvline(info["success"]["max_re_deg"], color="grey", linewidth=0.8, linestyle=":")
         ax.set(xscale="log", xlim=(1e-2, 180), ylim=(0, 1), title=name, xlabel="RE (deg)", ylabel="fraction <= RE")
         ax.grid(alpha=0.3)
-    handles, labels = axes[0].get_legend_handles_labels()
-    fig.legend(handles, labels, loc="lower center", ncol=min(len(labels), 8), frameon=False)
-    fig.tight_layout(rect=(0, 0.06, 1, 1))
+    return _save_with_legend(fig, axes, path, columns=8)
+
+
+def _save_with_legend(fig: Any, axes: Sequence[Any], path: Path, columns: int) -> Path:
+    """One legend (every panel's lines, each label once; at most `columns` wide and 2.2 inches a column)
+    under the panels, then save the figure to `path` and close it."""
+    import matplotlib.pyplot as plt
+
+    legend: dict[str, Any] = {}
+    for ax in axes:
+        for handle, label in zip(*ax.get_legend_handles_labels()):
+            legend.setdefault(label, handle)
+    labels = method_order(legend)
+    handles = [legend[label] for label in labels]
+    width, height = fig.get_size_inches()
+    ncol = max(1, min(len(labels), columns, int(width // 2.2)))
+    fig.legend(handles, labels, loc="lower center", ncol=ncol, frameon=False)
+    fig.tight_layout(rect=(0, min(0.5, (0.1 + 0.25 * math.ceil(len(labels) / ncol)) / height), 1, 1))
     fig.savefig(path, dpi=90)
     plt.close(fig)
     return path
@@ -375,6 +485,26 @@ def plot_accuracy_time(run: BenchRun, path: Path) -> Path:
     return path
 
 
+def plot_success_overlap(run: BenchRun, path: Path) -> Path | None:
+    """Success rate against overlap share (OVERLAP_BINS, at bin centres; empty bins skipped), one line per
+    method, one panel per dataset whose overlap varies; None when no dataset does."""
+
+    names = [n for n, info in run.datasets.items() if varies_in_overlap(info)]
+    if not names:
+        return None
+    colors = _colors(method_order(r["method"] for r in run.records))
+    centres = 0.5 * (np.asarray(OVERLAP_BINS[:-1]) + np.asarray(OVERLAP_BINS[1:]))
+    fig, axes = _grid(len(names))
+    for ax, name in zip(axes, names):
+        for m, cells in success_by_overlap([r for r in run.records if r["dataset"] == name]).items():
+            keep = [k for k, (n, _) in enumerate(cells) if n]
+            ax.plot(centres[keep], [cells[k][1] for k in keep], marker="o", label=m, color=colors[m],
+                    linestyle="--" if m == "identity" else "-")
+        ax.set(xlim=(0, 1), ylim=(-0.02, 1.02), title=name, xlabel="overlap share (bin centre)", ylabel="success rate")
+        ax.grid(alpha=0.3)
+    return _save_with_legend(fig, axes, path, columns=6)
+
+
 def load_run(path: str | Path) -> BenchRun:
     """A run back from its results.json (None where the run had NaN), e.g. to re-render the report."""
     data = json.loads(Path(path).read_text())
@@ -393,7 +523,8 @@ def load_run(path: str | Path) -> BenchRun:
 def write_report(
     run: BenchRun, out_dir: str | Path, thresholds: Sequence[float] = DEFAULT_CONFIDENCE_THRESHOLDS
 ) -> dict[str, Path]:
-    """Write report.md, results.json and (with method tables) re_cdf.png and accuracy_vs_time.png into out_dir."""
+    """Write report.md, results.json and (with method tables) re_cdf.png, accuracy_vs_time.png and, when a
+    dataset's overlap varies, success_vs_overlap.png into out_dir."""
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     paths = {"markdown": out / "report.md", "json": out / "results.json"}
@@ -402,4 +533,7 @@ def write_report(
     if run.datasets:
         paths["re_cdf"] = plot_re_cdf(run, out / "re_cdf.png")
         paths["accuracy_vs_time"] = plot_accuracy_time(run, out / "accuracy_vs_time.png")
+        overlap = plot_success_overlap(run, out / "success_vs_overlap.png")
+        if overlap is not None:
+            paths["success_vs_overlap"] = overlap
     return paths

@@ -8,6 +8,8 @@ thread setting, and records per pair and method:
   at the true pose is stored per pair as the floor;
 - seconds: wall time of one batch-1 registration including each method's own preprocessing;
 - success: RE and TE below the dataset's thresholds (`datasets.Success`);
+- overlap: the pair's overlap share at the true pose (`datasets.overlap_share`, the dataset frame's
+  radius; also listed per pair in the dataset's entry); category: ModelNet40 pairs' category name;
 - GenReg only: confidence, fitness, inlier ratio and stage timings of `RegistrationResult`.
 Transforms are 4x4 target_from_source (x_t = R x_s + t). A missing GenReg checkpoint skips its methods
 with a message. Ablations are separate sections of a run (`BenchRun.ablations`, module `ablation`); they
@@ -26,10 +28,19 @@ from typing import Any
 import torch
 from tqdm import tqdm
 
-from genreg_core.bench.datasets import BenchOptions, DatasetSpec, PairTruth, Suite, pair_truth, plan_suite
+from genreg_core.bench.datasets import (
+    BenchOptions,
+    DatasetSpec,
+    PairTruth,
+    Suite,
+    pair_truth,
+    plan_suite,
+    resolve_suite,
+)
 from genreg_core.bench.methods import (
     ALL_METHODS,
     DEFAULT_CHECKPOINTS,
+    DEFAULT_METHODS,
     GENREG_METHODS,
     Method,
     MethodOutput,
@@ -70,18 +81,21 @@ def scored_fields(spec: DatasetSpec, truth: PairTruth, T: Any, seconds: float) -
 def run_dataset(
     spec: DatasetSpec, pairs: Any, indices: Sequence[int], methods: dict[str, Method], options: BenchOptions,
     progress: tqdm | None = None, measure: Measure | None = None,
-) -> tuple[list[dict[str, Any]], list[float]]:
-    """Register pairs[i] for i in indices with every method; returns (records, CD floor per pair).
+) -> tuple[list[dict[str, Any]], list[float], list[float | None]]:
+    """Register pairs[i] for i in indices with every method; returns (records, CD floor per pair, overlap
+    share per pair).
 
     `measure` adds record fields from each output and the pair's truth (the ablations' generation errors).
     """
-    records, floors = [], []
+    records, floors, overlaps = [], [], []
     for i in indices:
         item = pairs[i]
-        truth = pair_truth(item, i, options)
+        truth = pair_truth(item, i, options, spec.frame.overlap_radius)
         floors.append(truth.cd_floor)
+        overlaps.append(truth.overlap)
+        pair_fields = {"overlap": truth.overlap, **({"category": item["category"]} if "category" in item else {})}
         for name, method in methods.items():
-            rec: dict[str, Any] = {"dataset": spec.name, "pair": int(i), "method": name}
+            rec: dict[str, Any] = {"dataset": spec.name, "pair": int(i), "method": name, **pair_fields}
             try:
                 out = method(item["source"], item["target"])
                 rec.update(scored_fields(spec, truth, out.transformation, out.seconds), **out.extra)
@@ -92,7 +106,7 @@ def run_dataset(
             records.append(rec)
         if progress is not None:
             progress.update(1)
-    return records, floors
+    return records, floors, overlaps
 
 
 def dataset_info(spec: DatasetSpec, pairs: Any, indices: Sequence[int], checkpoint: str, **extra: Any) -> dict[str, Any]:
@@ -100,7 +114,8 @@ def dataset_info(spec: DatasetSpec, pairs: Any, indices: Sequence[int], checkpoi
     return {
         "title": spec.title, "kind": spec.kind, "units": spec.units, "checkpoint": checkpoint,
         "success": asdict(spec.success), "pairs": len(indices), "available_pairs": len(pairs),
-        "indices": list(indices), "points_per_cloud": len(pairs[indices[0]]["source"]), **extra,
+        "indices": list(indices), "points_per_cloud": len(pairs[indices[0]]["source"]),
+        "overlap_radius": spec.frame.overlap_radius, **extra,
     }
 
 
@@ -114,11 +129,12 @@ def run_benchmark(
     progress: bool = True,
     log: Callable[[str], None] = print,
 ) -> BenchRun:
-    """Run a suite ('smoke', 'quick', 'full' or a `Suite`); `checkpoints` maps kind -> name or path.
+    """Run a suite ('smoke', 'quick', 'full', 'partial' or a `Suite`); `checkpoints` maps kind -> name or path.
 
-    `methods` / `datasets` restrict the run; `max_pairs` caps the pairs per dataset.
+    `methods` (default: the suite's, else `DEFAULT_METHODS`) / `datasets` restrict the run; `max_pairs` caps
+    the pairs per dataset. A method runs on the datasets it applies to (`DatasetSpec.applies`).
     """
-    wanted = list(methods or ALL_METHODS)
+    wanted = list(methods or resolve_suite(suite, options)[1].methods or DEFAULT_METHODS)
     unknown = sorted(set(wanted) - set(ALL_METHODS))
     if unknown:
         raise ValueError(f"unknown methods {unknown}; known: {list(ALL_METHODS)}")
@@ -134,21 +150,22 @@ def run_benchmark(
                            skipped, log)
 
     records, infos, throughput = [], {}, []
-    warmed: set[tuple[str, str, bool]] = set()
+    warmed: set[tuple[str, str, str]] = set()
     bar = tqdm(total=sum(len(p[2]) for p in plan), unit="pair", disable=not progress)
     for spec, pairs, indices in plan:
         bar.set_description(spec.name)
         params = spec.baseline_params(options.threads)
-        table = method_table(wanted, params, genreg.get(spec.kind))
+        table = method_table([m for m in wanted if spec.applies(m)], params, genreg.get(spec.kind))
         warm = pairs[indices[0]]
         for m, method in table.items():  # first-call costs (allocations, thread pools) stay out of the timings
-            if (m, spec.kind, spec.metric) not in warmed:
+            if (m, spec.kind, spec.units) not in warmed:
                 method(warm["source"], warm["target"])
-                warmed.add((m, spec.kind, spec.metric))
-        recs, floors = run_dataset(spec, pairs, indices, table, options, bar)
+                warmed.add((m, spec.kind, spec.units))
+        recs, floors, overlaps = run_dataset(spec, pairs, indices, table, options, bar)
         records += recs
         infos[spec.name] = dataset_info(spec, pairs, indices, checkpoints[spec.kind], genreg=spec.kind in genreg,
-                                        cd_floor=floors, baseline_params=asdict(params))
+                                        cd_floor=floors, overlap=overlaps, methods=list(table),
+                                        baseline_params=asdict(params))
     bar.close()
 
     for kind, regs in genreg.items():
