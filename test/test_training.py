@@ -96,7 +96,8 @@ def test_cli_writes_checkpoints_and_log_and_reports_bad_config(tmp_path, capsys)
     assert "unknown key" in capsys.readouterr().err
 
 
-SHIPPED_RECIPES = ("train_modelnet40_ppf.yaml", "train_modelnet40_dgcnn.yaml", "train_7scenes_ppf.yaml")
+SHIPPED_RECIPES = ("train_modelnet40_ppf.yaml", "train_modelnet40_dgcnn.yaml", "train_modelnet40_partial.yaml",
+                   "train_7scenes_ppf.yaml")
 DDP_SCRIPT = """
 import sys, torch, torch.distributed as dist
 from genreg_core.training.config import load_train_config
