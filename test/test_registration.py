@@ -271,3 +271,22 @@ def test_robust_extent_is_the_bounding_box_of_small_clouds_and_ignores_a_few_str
     _, clean = robust_extent(big)
     _, strayed = robust_extent(np.vstack([big, [[60.0, 0, 0], [0, -200.0, 0]]]))
     assert abs(strayed - clean) < 0.01 and abs(clean - 2.0) < 0.01
+
+
+def test_register_many_with_a_metric_threshold_on_pairs_of_different_scales_matches_register(untrained):
+    """A PDSAC threshold in metres means a different threshold in each pair's normalised frame: the batch
+    then runs PDSAC per pair. PDSAC draws for the whole batch from one generator, so the first pair of a
+    batch equals `register` of that pair alone, whichever pair comes first."""
+    from genreg_core.config import PDSACConfig
+
+    cfg = RegistrationConfig(pdsac=PDSACConfig(inlier_threshold=0.2))
+    reg = Registrar.from_checkpoint(untrained, cfg)
+    rng = np.random.default_rng(8)
+    pairs = []
+    for k, size in enumerate((1.0, 7.0)):
+        src = _shape(1200, seed=20 + k) * size
+        pairs.append((src, apply_transform(random_transform(rng, 10.0, 0.1), src)))
+    assert reg.prepare(*pairs[0]).scale * 5 < reg.prepare(*pairs[1]).scale  # the frames' thresholds differ
+    for order in (pairs, pairs[::-1]):
+        first = reg.register_many(order)[0]
+        np.testing.assert_allclose(first.transformation, reg.register(*order[0]).transformation, atol=1e-6)
