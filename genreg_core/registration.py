@@ -170,24 +170,23 @@ class Registrar:
             T_n = refine(p.dense_src, p.dense_tgt, T_n, cfg.refine)  # 6. refine GenReg's estimate
         distance = fitness_distance(p.dense_tgt)
         fitness, rmse_n = overlap_fitness(p.dense_src, p.dense_tgt, T_n, distance)  # 7. score
-        start, rival = "genreg", None
+        start, rival = "genreg", None  # rival: (T_n, fitness, rmse_n) of the other start, each scored once
         if p.init is not None:  # 6. the initial guess (identity in the guess-moved frame), kept or refined
-            rival = np.eye(4)
+            rival = (np.eye(4), *overlap_fitness(p.dense_src, p.dense_tgt, np.eye(4), distance))
             if refining:
-                moved = refine(p.dense_src, p.dense_tgt, rival, cfg.refine)
-                if overlap_fitness(p.dense_src, p.dense_tgt, moved, distance)[0] > \
-                        overlap_fitness(p.dense_src, p.dense_tgt, rival, distance)[0] + GUESS_MARGIN:
-                    rival = moved  # refinement must earn its move away from the user's guess
+                moved = refine(p.dense_src, p.dense_tgt, np.eye(4), cfg.refine)
+                scored = (moved, *overlap_fitness(p.dense_src, p.dense_tgt, moved, distance))
+                if scored[1] > rival[1] + GUESS_MARGIN:
+                    rival = scored  # refinement must earn its move away from the user's guess
         elif refining and confidence(fitness, inlier_ratio) < cfg.refine.guard_below:
-            rival = guard_icp(p.dense_src, p.dense_tgt, cfg.refine)  # 6. the guard: wide ICP from identity
-        if rival is not None:
-            fitness_rival, rmse_rival = overlap_fitness(p.dense_src, p.dense_tgt, rival, distance)
-            if fitness_rival + (GUESS_MARGIN if p.init is not None else 0.0) > fitness:
-                T_n, fitness, rmse_n, start = rival, fitness_rival, rmse_rival, "initial_guess"
-                T_k = torch.from_numpy(rival)[None].to(est.source_generated.dtype)
-                a, b = torch.from_numpy(p.a)[None], torch.from_numpy(p.b)[None]
-                inlier_ratio = float(union_inlier_share(T_k, a, est.source_generated[k: k + 1], b,
-                                                        est.target_generated[k: k + 1], cfg.pdsac.tau)[0])
+            guarded = guard_icp(p.dense_src, p.dense_tgt, cfg.refine)  # 6. the guard: wide ICP from identity
+            rival = (guarded, *overlap_fitness(p.dense_src, p.dense_tgt, guarded, distance))
+        if rival is not None and rival[1] + (GUESS_MARGIN if p.init is not None else 0.0) > fitness:
+            (T_n, fitness, rmse_n), start = rival, "initial_guess"
+            T_k = torch.from_numpy(T_n)[None].to(est.source_generated.dtype)
+            a, b = torch.from_numpy(p.a)[None], torch.from_numpy(p.b)[None]
+            inlier_ratio = float(union_inlier_share(T_k, a, est.source_generated[k: k + 1], b,
+                                                    est.target_generated[k: k + 1], cfg.pdsac.tau)[0])
         t1 = time.perf_counter()
         T = p.to_input_units(T_n)
         moved = p.points_to_input_units(apply_transform(T_n, p.dense_src.astype(np.float64)))
