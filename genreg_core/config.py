@@ -173,8 +173,8 @@ class RefineConfig:
 
     Guard against a wrong global estimate (e.g. a symmetric shape flipped): when the confidence after
     refinement is below `guard_below`, ICP also runs from identity with the wide cut-off
-    `guard_distance` and `guard_iterations`; the start whose result overlaps the target better (fitness)
-    wins. 0 turns the guard off. Chosen on training-split pairs (MODEL_CARD.md). With an initial guess,
+    `guard_distance` and `guard_iterations`; the start that puts more source points within one target
+    spacing of the target wins (`registration.GUARD_SPACINGS`). 0 turns the guard off. Chosen on training-split pairs (MODEL_CARD.md). With an initial guess,
     refinement always runs from the guess too (with the refinement's own settings) and competes the
     same way, so an exact guess is kept.
     """
@@ -187,7 +187,8 @@ class RefineConfig:
     num_points: int = setting(5000, "Points per cloud used by ICP and the fitness measure.", low=16,
                               high=1_000_000)
     guard_below: float = setting(0.4, "Below this confidence ICP also runs from the initial guess; the "
-                                 "better-overlapping start wins (0: off).", low=0.0, high=1.0)
+                                 "start with more source points within one target spacing wins (0: off).",
+                                 low=0.0, high=1.0)
     guard_distance: float = setting(0.0, "ICP correspondence distance of the guard's run from the initial "
                                     "guess (no guess given), m; 0: auto, 50 % of the robust extent.", low=0.0,
                                     high=1e4)
@@ -198,11 +199,34 @@ class RefineConfig:
 
 
 @dataclass(frozen=True)
+class FallbackConfig:
+    """Opt-in classical global registration (`genreg_core.fallback`: Open3D FPFH + RANSAC) when GenReg stays
+    unsure: below confidence `below` after refinement and guard, FPFH + RANSAC runs on the refinement
+    clouds, is refined like GenReg's estimate, and replaces it when it puts more source points within one
+    target spacing of the target (as the guard). The result's `start` then says "fallback". Lengths are
+    fractions of the source's robust extent (the defaults are the unit-box baseline's, MODEL_CARD.md)."""
+
+    method: str = setting("none", "Fallback below `below` confidence: none or fpfh_ransac (Open3D).",
+                          choices=("none", "fpfh_ransac"))
+    below: float = setting(0.3, "Run the fallback when the confidence stays below this.", low=0.0, high=1.0)
+    voxel_size: float = setting(0.0, "Feature voxel, fraction of the extent (0: the refinement points as given).",
+                                low=0.0, high=1.0)
+    normal_radius: float = setting(0.1, "Normal radius, fraction of the extent.", low=1e-4, high=1.0)
+    fpfh_radius: float = setting(0.25, "FPFH radius, fraction of the extent.", low=1e-4, high=1.0)
+    distance: float = setting(0.05, "RANSAC inlier distance, fraction of the extent.", low=1e-4, high=1.0)
+    seed: int = setting(0, "Open3D RANSAC seed.", low=0, high=2**31 - 1)
+
+    def __post_init__(self) -> None:
+        check_ranges(self, "fallback.")
+
+
+@dataclass(frozen=True)
 class RegistrationConfig:
     """Everything the registration pipeline needs besides the network weights."""
 
     pdsac: PDSACConfig = setting(PDSACConfig(), "PDSAC settings.")
     refine: RefineConfig = setting(RefineConfig(), "Refinement settings.")
+    fallback: FallbackConfig = setting(FallbackConfig(), "Opt-in classical fallback.")
     min_points: int = setting(32, "Clouds with fewer finite points fail (TooFewPointsError).", low=4,
                               high=1_000_000)
     seed: int | None = setting(0, "Subsampling and PDSAC seed; None draws fresh randomness.")

@@ -26,6 +26,17 @@ def make_transform(rotation: np.ndarray, translation: np.ndarray) -> np.ndarray:
     return T
 
 
+def kidnap_motion(rng: np.random.Generator, center: np.ndarray, max_angle_deg: float = 45.0,
+                  max_translation: float = 0.5) -> np.ndarray:
+    """The 4x4 motion x -> R (x - center) + center + t: R by an angle uniform in [0, max_angle_deg] about a
+    uniformly random axis, t of uniformly random direction and length uniform in [0, max_translation]."""
+    axis, direction = rng.normal(size=3), rng.normal(size=3)
+    angle = np.deg2rad(rng.uniform(0.0, max_angle_deg))
+    R = Rotation.from_rotvec(angle * axis / np.linalg.norm(axis)).as_matrix()
+    t = rng.uniform(0.0, max_translation) * direction / np.linalg.norm(direction)
+    return make_transform(R, center - R @ center + t)
+
+
 def invert_transform(T: ArrayLike) -> ArrayLike:
     """Inverse of a rigid transform (batched over leading dims): [R t]^-1 = [R^T, -R^T t]."""
     R, t = T[..., :3, :3], T[..., :3, 3:]

@@ -11,7 +11,8 @@ Stages of `register_many` (`register` is one pair of it):
     4. generate  `model.generate`: A_g (the source in the target frame) and B_g
     5. PDSAC     `pdsac.pdsac_bidirectional`: one rigid transform from both generated sets
     6. refine    `refine.refine` (ICP); with an initial guess, refinement from the guess competes with
-                 GenReg's start (fitness decides); without one, the guard `refine.guard_icp`
+                 GenReg's start (fitness decides); without one, the guard `refine.guard_icp`; opt-in, the
+                 classical `fallback.fallback` (FPFH + RANSAC) when the confidence stays low
     7. score     `score`: fitness, inlier ratio, confidence, covariance; the transform in input units
 Conventions (frames, units, T_target_source): `genreg_core.geometry`. `transformation` is the input's
 target_from_source; internally everything runs in the prepared pair's normalised frame.
@@ -29,6 +30,7 @@ import torch
 
 from genreg_core.checkpoint import load_checkpoint
 from genreg_core.config import PDSACConfig, RegistrationConfig
+from genreg_core.fallback import fallback
 from genreg_core.geometry import apply_transform
 from genreg_core.pdsac import pdsac_bidirectional, seeded_generator, union_inlier_share
 from genreg_core.prepare import PreparedPair, model_frame_config, prepare_pair
@@ -37,6 +39,7 @@ from genreg_core.score import (
     COVARIANCE_FLOOR_M,
     COVARIANCE_FLOOR_RAD,
     COVARIANCE_INFLATION,
+    FITNESS_SPACINGS,
     confidence,
     fitness_distance,
     overlap_fitness,
@@ -46,6 +49,14 @@ from genreg_core.score import (
 # With an initial guess, another pose replaces it only when its fitness (share of source points overlapping
 # the target) is higher by more than this: a guess the user trusts is not traded for an equal-looking pose.
 GUESS_MARGIN = 0.02
+# Refinement from the guess replaces the guess only when it puts this much larger a share of the source
+# within one target spacing (at 3 spacings a guess 3.6 deg off already overlaps 0.98 of a small object and
+# refinement could not earn its move; an exact guess on SUN3D gains 0.02 there from GICP's ~1 deg slide).
+REFINED_GUESS_MARGIN = 0.05
+# The guard's ICP result replaces GenReg's when more of the source lies within this many target spacings of
+# the target (not FITNESS_SPACINGS: at 3 spacings a wrong pose that pushes a partial source's unmatched part
+# onto the target can overlap more than the true one; chosen on training pairs, MODEL_CARD "guard").
+GUARD_SPACINGS = 1.0
 
 
 @dataclass
@@ -61,8 +72,8 @@ class RegistrationResult:
     inlier_ratio: float  # fraction of generated correspondences (both directions) consistent with T
     inlier_rmse: float  # RMS distance of the fitness inliers, input units
     confidence: float  # in [0, 1]: geometric mean of fitness and inlier_ratio
-    start: str = "genreg"  # what the final pose grew from: "genreg", or "initial_guess" (the guess, or the
-    # guard's ICP from identity without a guess, overlapped the target better)
+    start: str = "genreg"  # what the final pose grew from: "genreg", "initial_guess" (the guess, or the
+    # guard's ICP from identity without a guess, overlapped the target better) or "fallback" (FPFH + RANSAC)
     covariance: np.ndarray | None = None  # (6, 6) of the final pose, ROS order (x, y, z, rot x, y, z), m, rad
     timings: dict[str, float] = field(default_factory=dict)  # seconds per stage and 'total'
 
@@ -168,34 +179,52 @@ class Registrar:
         refining = cfg.refine.method != "none"
         if refining:
             T_n = refine(p.dense_src, p.dense_tgt, T_n, cfg.refine)  # 6. refine GenReg's estimate
-        distance = fitness_distance(p.dense_tgt)
-        fitness, rmse_n = overlap_fitness(p.dense_src, p.dense_tgt, T_n, distance)  # 7. score
-        start, rival = "genreg", None  # rival: (T_n, fitness, rmse_n) of the other start, each scored once
+        distance = fitness_distance(p.target_index)
+        fitness, rmse_n = overlap_fitness(p.dense_src, p.target_index, T_n, distance)  # 7. score
+        start, rescore = "genreg", False
+
+        def agreement(T_r: np.ndarray) -> float:  # inlier ratio of another pose under GenReg's correspondences
+            T_k = torch.from_numpy(T_r)[None].to(est.source_generated.dtype)
+            a, b = torch.from_numpy(p.a)[None], torch.from_numpy(p.b)[None]
+            return float(union_inlier_share(T_k, a, est.source_generated[k: k + 1], b,
+                                            est.target_generated[k: k + 1], cfg.pdsac.tau)[0])
+
+        def closer(T_a: np.ndarray, T_b: np.ndarray, margin: float = 0.0) -> bool:
+            """Whether T_a puts a larger share (by more than `margin`) of the source within one spacing."""
+            tight = GUARD_SPACINGS * distance / FITNESS_SPACINGS
+            return (overlap_fitness(p.dense_src, p.target_index, T_a, tight)[0]
+                    > overlap_fitness(p.dense_src, p.target_index, T_b, tight)[0] + margin)
+
         if p.init is not None:  # 6. the initial guess (identity in the guess-moved frame), kept or refined
-            rival = (np.eye(4), *overlap_fitness(p.dense_src, p.dense_tgt, np.eye(4), distance))
-            if refining:
-                moved = refine(p.dense_src, p.dense_tgt, np.eye(4), cfg.refine)
-                scored = (moved, *overlap_fitness(p.dense_src, p.dense_tgt, moved, distance))
-                if scored[1] > rival[1] + GUESS_MARGIN:
-                    rival = scored  # refinement must earn its move away from the user's guess
+            kept = np.eye(4)
+            if refining:  # refinement must earn its move away from the user's guess, at one spacing
+                moved = refine(p.dense_src, p.dense_tgt, kept, cfg.refine)
+                kept = moved if closer(moved, kept, REFINED_GUESS_MARGIN) else kept
+            rival = (kept, *overlap_fitness(p.dense_src, p.target_index, kept, distance))
+            if rival[1] + GUESS_MARGIN > fitness:  # another pose replaces the guess only with a margin
+                (T_n, fitness, rmse_n), start = rival, "initial_guess"
+                inlier_ratio = agreement(T_n)
         elif refining and confidence(fitness, inlier_ratio) < cfg.refine.guard_below:
             guarded = guard_icp(p.dense_src, p.dense_tgt, cfg.refine)  # 6. the guard: wide ICP from identity
-            rival = (guarded, *overlap_fitness(p.dense_src, p.dense_tgt, guarded, distance))
-        if rival is not None and rival[1] + (GUESS_MARGIN if p.init is not None else 0.0) > fitness:
-            (T_n, fitness, rmse_n), start = rival, "initial_guess"
-            T_k = torch.from_numpy(T_n)[None].to(est.source_generated.dtype)
-            a, b = torch.from_numpy(p.a)[None], torch.from_numpy(p.b)[None]
-            inlier_ratio = float(union_inlier_share(T_k, a, est.source_generated[k: k + 1], b,
-                                                    est.target_generated[k: k + 1], cfg.pdsac.tau)[0])
+            if closer(guarded, T_n):
+                T_n, start, rescore = guarded, "initial_guess", True
+        if cfg.fallback.method != "none" and confidence(fitness, inlier_ratio) < cfg.fallback.below:
+            rescue = fallback(p.dense_src, p.dense_tgt, cfg.fallback)  # 6. opt-in classical fallback
+            rescue = refine(p.dense_src, p.dense_tgt, rescue, cfg.refine) if refining else rescue
+            if closer(rescue, T_n):
+                T_n, start, rescore = rescue, "fallback", True
+        if rescore:  # the guard's or the fallback's pose: scored afresh
+            fitness, rmse_n = overlap_fitness(p.dense_src, p.target_index, T_n, distance)
+            inlier_ratio = agreement(T_n)
         t1 = time.perf_counter()
         T = p.to_input_units(T_n)
-        moved = p.points_to_input_units(apply_transform(T_n, p.dense_src.astype(np.float64)))
-        covariance = pose_covariance(moved, p.points_to_input_units(p.dense_tgt.astype(np.float64)), T[:3, 3],
-                                     distance * p.scale, COVARIANCE_INFLATION,
-                                     (COVARIANCE_FLOOR_M, COVARIANCE_FLOOR_RAD))
+        origin_n = (T[:3, 3] - p.offset) / p.scale  # the pose's position, normalised frame
+        covariance = pose_covariance(apply_transform(T_n, p.dense_src.astype(np.float64)), p.target_index, origin_n,
+                                     distance, COVARIANCE_INFLATION, (COVARIANCE_FLOOR_M, COVARIANCE_FLOOR_RAD),
+                                     scale=p.scale)  # in the normalised frame (the fitness' index), metric
         a_gen = p.points_to_input_units(est.source_generated[k].double().cpu().numpy())
         b_gen = p.points_to_input_units(est.target_generated[k].double().cpu().numpy())
-        aligned = apply_transform(T, p.src).astype(np.float32)
+        aligned = p.aligned_source(T)  # float32, one product
         t2 = time.perf_counter()
         return RegistrationResult(
             transformation=T,

@@ -3,17 +3,26 @@
 fitness: the share of (refinement-resolution) source points that land within `FITNESS_SPACINGS` target
 point spacings of a target point; inlier ratio: the share of the generated correspondences (both
 directions) that the transform maps within PDSAC's inlier threshold; confidence: their geometric mean.
+
+Every score of a pair queries the same target cloud: `TargetIndex` builds its k-d tree (small_gicp) once
+and serves the spacing, the fitness queries and the normals of the covariance from it. The score functions
+take the target as its `TargetIndex` (the pipeline passes `PreparedPair.target_index`, one per pair) or as
+an array (indexed afresh).
 """
 
 from __future__ import annotations
 
-import numpy as np
-import open3d as o3d
-from scipy.spatial import cKDTree
+import os
 
-from genreg_core.refine import o3d_cloud
+import numpy as np
+import small_gicp
+from scipy import sparse
+
+from genreg_core.geometry import apply_transform
 
 FITNESS_SPACINGS = 3.0  # fitness counts a source point as overlapping within this many target spacings
+NORMAL_NEIGHBOURS = 20  # pose_covariance: target normals from this many nearest neighbours (as refine.NORMAL_KNN)
+REMEMBERED_QUERIES = 3  # TargetIndex.nearest answers the same points again from memory (last this many)
 # pose_covariance's model error, calibrated on redkitchen training pairs by scripts/calibrate_covariance.py
 # (MODEL_CARD.md): the Gauss-Newton covariance times COVARIANCE_INFLATION (residuals of neighbouring points
 # are correlated) plus a floor of COVARIANCE_FLOOR_M (m) and COVARIANCE_FLOOR_RAD (rad) standard deviation
@@ -23,21 +32,117 @@ COVARIANCE_FLOOR_M = 0.0033
 COVARIANCE_FLOOR_RAD = 0.0023
 
 
-def point_spacing(points: np.ndarray) -> float:
+class TargetIndex:
+    """One target cloud's k-d tree (small_gicp, exact search) with what the scores need from it, each
+    computed on first use: the point spacing and the normals at the rows asked (PCA of `NORMAL_NEIGHBOURS`
+    neighbours, as Open3D's KNN normals). Queries run on `threads` threads (default: OMP_NUM_THREADS,
+    else 1)."""
+
+    def __init__(self, points: np.ndarray, threads: int | None = None) -> None:
+        self.points = np.ascontiguousarray(points, dtype=np.float64)
+        self.threads = threads or int(os.environ.get("OMP_NUM_THREADS") or 1)
+        self.tree = small_gicp.KdTree(self.points, num_threads=1)
+        self._spacing: float | None = None
+        self._normals = np.zeros_like(self.points)
+        self._has_normal = np.zeros(len(self.points), dtype=bool)
+        self._queries: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []  # the last few `nearest` calls
+
+    @classmethod
+    def of(cls, target: np.ndarray | TargetIndex) -> TargetIndex:
+        """`target` if it is an index, else a new index of the array."""
+        return target if isinstance(target, TargetIndex) else cls(target)
+
+    def nearest(self, query: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(row, squared distance) of each query point's nearest target point. The last `REMEMBERED_QUERIES`
+        answers are kept: the same points asked again (the fitness and then the covariance of one pose) are
+        answered from memory."""
+        query = np.ascontiguousarray(query, dtype=np.float64)
+        for asked, rows, squared in self._queries:
+            if asked.shape == query.shape and np.array_equal(asked, query):
+                return rows, squared
+        found, squared = self.tree.batch_knn_search(query, 1, num_threads=self.threads)  # arrays, not lists
+        rows, squared = found[:, 0].astype(np.int64), squared[:, 0]
+        self._queries = [(query.copy(), rows, squared), *self._queries[:REMEMBERED_QUERIES - 1]]
+        return rows, squared
+
+    @property
+    def spacing(self) -> float:
+        """Median distance from a target point to its nearest other target point."""
+        if self._spacing is None:
+            _, squared = self.tree.batch_knn_search(self.points, 2, num_threads=self.threads)
+            self._spacing = float(np.median(np.sqrt(squared[:, 1])))
+        return self._spacing
+
+    def normals(self, rows: np.ndarray) -> np.ndarray:
+        """Unit normals (unoriented: only their line matters here) at these target rows: the PCA normal of
+        each row's `NORMAL_NEIGHBOURS` nearest target points (as Open3D's KNN normals), computed once per
+        row and only for the rows asked."""
+        missing = sorted_distinct(rows[~self._has_normal[rows]])
+        if len(missing):
+            k = min(NORMAL_NEIGHBOURS, len(self.points))
+            neighbours, _ = self.tree.batch_knn_search(self.points[missing], k, num_threads=self.threads)
+            self._normals[missing] = plane_normals(self.points, neighbours.astype(np.int64))
+            self._has_normal[missing] = True
+        return self._normals[rows]
+
+
+def sorted_distinct(values: np.ndarray) -> np.ndarray:
+    """np.unique of an integer array by sorting (numpy 2's hash-based np.unique is 10x slower here)."""
+    ordered = np.sort(values)
+    return ordered[np.concatenate([[True], ordered[1:] != ordered[:-1]])]
+
+
+def plane_normals(points: np.ndarray, neighbours: np.ndarray) -> np.ndarray:
+    """(m, 3) unit normals of the point sets `points[neighbours]` ((m, k) rows of an (M, 3) cloud): each
+    set's least-variance direction (zero for a set with no spread), the eigenvector of the smallest
+    eigenvalue of its covariance. The covariances come from per-point moments summed by one sparse product
+    (as Open3D's cumulants); the eigenvector in closed form: the eigenvalue by the trigonometric formula of a
+    symmetric 3x3 matrix, the vector as the longest cross product of two rows of (C - lambda I). Matches
+    LAPACK / Open3D to ~1e-13 on planar neighbourhoods."""
+    m, k = neighbours.shape
+    x, y, z = (points - points.mean(axis=0)).T  # centred: the moments then cancel no large offset
+    moments = np.stack([x * x, x * y, x * z, y * y, y * z, z * z, x, y, z], axis=1)
+    pick = sparse.csr_matrix((np.ones(m * k), neighbours.ravel(), np.arange(0, m * k + 1, k)), shape=(m, len(points)))
+    sums = (pick @ moments).T / k
+    mx, my, mz = sums[6:]
+    c = [sums[0] - mx * mx, sums[1] - mx * my, sums[2] - mx * mz, sums[3] - my * my, sums[4] - my * mz,
+         sums[5] - mz * mz]
+    top = np.maximum.reduce([np.abs(v) for v in c])
+    spread = top > 0
+    top[~spread] = 1.0
+    c00, c01, c02, c11, c12, c22 = (v / top for v in c)  # scaled to 1 for precision
+    q = (c00 + c11 + c22) / 3
+    b00, b11, b22 = c00 - q, c11 - q, c22 - q
+    p = np.sqrt((b00 * b00 + b11 * b11 + b22 * b22 + 2 * (c01 * c01 + c02 * c02 + c12 * c12)) / 6)
+    p[p == 0] = 1.0  # isotropic (C = q I): every direction is an eigenvector; any one will do
+    det = b00 * (b11 * b22 - c12 * c12) - c01 * (c01 * b22 - c12 * c02) + c02 * (c01 * c12 - b11 * c02)
+    smallest = q + 2 * p * np.cos(np.arccos(np.clip(det / (2 * p ** 3), -1.0, 1.0)) / 3 + 2 * np.pi / 3)
+    rows = np.stack([c00 - smallest, c01, c02, c01, c11 - smallest, c12, c02, c12, c22 - smallest]).reshape(3, 3, m)
+    u, v = rows[[0, 0, 1]], rows[[1, 2, 2]]  # the three pairs of rows, (pair, axis, m)
+    cross = u[:, [1, 2, 0]] * v[:, [2, 0, 1]] - u[:, [2, 0, 1]] * v[:, [1, 2, 0]]
+    lengths = np.einsum("pam,pam->pm", cross, cross)
+    best, every = np.argmax(lengths, axis=0), np.arange(m)
+    length = np.sqrt(lengths[best, every])
+    return cross[best, :, every] * (spread / np.where(length > 0, length, 1.0))[:, None]
+
+
+def point_spacing(points: np.ndarray | TargetIndex) -> float:
     """Median distance from a point to its nearest neighbour in the same cloud (its sampling density)."""
-    distances, _ = cKDTree(points).query(points, k=2)
-    return float(np.median(distances[:, 1]))
+    return TargetIndex.of(points).spacing
 
 
-def fitness_distance(target: np.ndarray) -> float:
+def fitness_distance(target: np.ndarray | TargetIndex) -> float:
     """The distance within which a moved source point counts as overlapping `target`."""
     return FITNESS_SPACINGS * point_spacing(target)
 
 
-def overlap_fitness(src: np.ndarray, tgt: np.ndarray, T: np.ndarray, threshold: float) -> tuple[float, float]:
-    """Open3D's fitness (share of moved source points with a target point within `threshold`) and RMSE."""
-    ev = o3d.pipelines.registration.evaluate_registration(o3d_cloud(src), o3d_cloud(tgt), threshold, T)
-    return float(ev.fitness), float(ev.inlier_rmse)
+def overlap_fitness(src: np.ndarray, tgt: np.ndarray | TargetIndex, T: np.ndarray, threshold: float
+                    ) -> tuple[float, float]:
+    """Share of moved source points with a target point within `threshold`, and their RMS distance (Open3D
+    `evaluate_registration`'s fitness and inlier RMSE; 0 RMSE when none is within)."""
+    _, squared = TargetIndex.of(tgt).nearest(apply_transform(T, np.asarray(src, dtype=np.float64)))
+    inliers = squared[squared < threshold * threshold]
+    return len(inliers) / len(squared), float(np.sqrt(inliers.mean())) if len(inliers) else 0.0
 
 
 def confidence(fitness: float, inlier_ratio: float) -> float:
@@ -45,8 +150,9 @@ def confidence(fitness: float, inlier_ratio: float) -> float:
     return float(np.sqrt(fitness * inlier_ratio))
 
 
-def pose_covariance(moved: np.ndarray, target: np.ndarray, origin: np.ndarray, max_distance: float,
-                    inflation: float = 1.0, floor: tuple[float, float] = (0.0, 0.0)) -> np.ndarray | None:
+def pose_covariance(moved: np.ndarray, target: np.ndarray | TargetIndex, origin: np.ndarray, max_distance: float,
+                    inflation: float = 1.0, floor: tuple[float, float] = (0.0, 0.0), scale: float = 1.0
+                    ) -> np.ndarray | None:
     """6x6 covariance of a pose, in ROS order (x, y, z, rotation about x, y, z), from the point-to-plane
     residuals of the aligned clouds; None when fewer than 12 correspondences remain.
 
@@ -56,18 +162,19 @@ def pose_covariance(moved: np.ndarray, target: np.ndarray, origin: np.ndarray, m
     the pose's position t. Gauss-Newton: C = inflation * s^2 (J^T J)^-1 + diag(f_t^2 I, f_r^2 I), with
     s^2 = sum r_i^2 / (n - 6) and `floor` = (f_t, f_r). The residuals of neighbouring points are not
     independent, so the plain formula is over-confident; `inflation` and `floor` are calibrated on
-    training pairs (MODEL_CARD.md). Units: those of the points (m) and radians.
+    training pairs (MODEL_CARD.md). Units: `moved`, `target`, `origin` and `max_distance` share one frame
+    whose lengths times `scale` are the output's (m), so normalised clouds give a metric covariance; radians.
     """
-    distances, index = cKDTree(target).query(moved, distance_upper_bound=max_distance)
-    found = np.isfinite(distances)
+    index = TargetIndex.of(target)
+    rows, squared = index.nearest(moved)
+    found = squared <= max_distance * max_distance
     if found.sum() < 12:
         return None
-    cloud = o3d_cloud(target)
-    cloud.estimate_normals(o3d.geometry.KDTreeSearchParamKNN(20))
-    normals = np.asarray(cloud.normals)[index[found]]
+    rows = rows[found]
+    normals = index.normals(rows)
     x = moved[found]
-    r = np.einsum("ij,ij->i", normals, x - target[index[found]])
-    J = np.concatenate([normals, np.cross(x - origin, normals)], axis=1)
+    r = scale * np.einsum("ij,ij->i", normals, x - index.points[rows])
+    J = np.concatenate([normals, scale * np.cross(x - origin, normals)], axis=1)
     H = J.T @ J
     if np.linalg.cond(H) > 1e12:
         return None

@@ -30,6 +30,7 @@ from typing import Any
 import numpy as np
 
 from genreg_core.config import (
+    FallbackConfig,
     PDSACConfig,
     RefineConfig,
     RegistrationConfig,
@@ -132,6 +133,8 @@ class NodeConfig:
     # The node refines with point-to-point ICP, 20 iterations; the API's default is no refinement.
     refine: RefineConfig = setting(RefineConfig(method="point_to_point", max_iterations=20),
                                    "ICP refinement: on in the node (the API's default is method none, 10 iterations).")
+    fallback: FallbackConfig = setting(FallbackConfig(), "Opt-in classical global fallback (FPFH + RANSAC) "
+                                       "when the confidence stays low (the core's defaults: off).")
     registration: RegistrationScalars = setting(RegistrationScalars(), "The RegistrationConfig scalars.")
     preprocess: PreprocessConfig = setting(PreprocessConfig(), "Range, crop box and voxel grid.")
     sync: SyncParams = setting(SyncParams(), "Stamp pairing.")

@@ -37,6 +37,7 @@ counters and /diagnostics: `genreg_ros.diagnostics`; messages: `genreg_ros.point
 
 from __future__ import annotations
 
+import queue
 import re
 import sys
 import threading
@@ -111,6 +112,21 @@ class _FixedTarget:
 
 
 @dataclass(frozen=True)
+class _Publication:
+    """A registered pair handed from the worker to the publisher thread: what to encode and publish, and
+    the worker's timings for the per-pair statistics."""
+
+    header: Header
+    source: Any  # the decoded source cloud (DecodedCloud): every field is kept in the aligned cloud
+    source_frame: str
+    result: Any  # genreg_core RegistrationResult
+    latency: float
+    overhead: float
+    timings: dict[str, float]
+    low_confidence: bool
+
+
+@dataclass(frozen=True)
 class _Guess:
     """A guess from a topic: T_target_source, the frames it names (child None: any), its arrival time."""
 
@@ -159,6 +175,10 @@ class RegisterNode(LifecycleNode):
         self._target_cache: tuple[Any, np.ndarray, PreprocessConfig] | None = None
         self._slot = LatestSlot()
         self._worker: threading.Thread | None = None
+        # Encoding and publishing the aligned cloud run on their own thread, so they overlap the next
+        # registration; the one-place queue makes the worker wait rather than let results pile up.
+        self._outbox: queue.Queue[_Publication | None] = queue.Queue(maxsize=1)
+        self._publisher: threading.Thread | None = None
         self._subs: dict[str, Any] = {}
         self._pubs: dict[str, Any] = {}
         self.finalized = Future()  # done after the shutdown transition (main() then exits)
@@ -219,7 +239,10 @@ class RegisterNode(LifecycleNode):
         self._reset_state("configure", count=False)
         self._slot = LatestSlot()
         self._worker = threading.Thread(target=self._work, name="genreg_worker", daemon=True)
+        self._outbox = queue.Queue(maxsize=1)
+        self._publisher = threading.Thread(target=self._publish_loop, name="genreg_publisher", daemon=True)
         self._worker.start()
+        self._publisher.start()
         return super().on_configure(state)
 
     def on_activate(self, state: LifecycleState) -> TransitionCallbackReturn:
@@ -276,6 +299,10 @@ class RegisterNode(LifecycleNode):
         if self._worker is not None:
             self._worker.join(timeout=10.0)
             self._worker = None
+        if self._publisher is not None:  # publishes what the worker handed over, then stops
+            self._outbox.put(None)
+            self._publisher.join(timeout=10.0)
+            self._publisher = None
         for pub in self._pubs.values():
             self.destroy_lifecycle_publisher(pub)
         self._pubs.clear()
@@ -470,10 +497,37 @@ class RegisterNode(LifecycleNode):
         if reject:
             self._fail(*reject)
             return
-        aligned = transform_cloud(header, src, T_target_source)
-        transform = matrix_to_msg(T_target_source, header, src_cloud.frame)
+        if low_confidence:  # published, yet flagged: a user must not mistake it for a good result
+            self._warn("low_confidence", f"published a low-confidence result: confidence {result.confidence:.2f} < "
+                       f"warn_confidence {c.warn_confidence} (fitness {result.fitness:.2f})")
+        with self._lock:
+            if generation == self._generation:  # no reset since the pair was taken
+                self._last_T, self._last_T_time = T_target_source, time.monotonic()
+        self._outbox.put(_Publication(header, src, src_cloud.frame, result, latency, (t1 - t0) + t_tgt, {
+            "fitness": result.fitness, "confidence": result.confidence, "inlier_rmse_m": result.inlier_rmse,
+            "decode_ms": 1e3 * ((t1 - t0) + t_tgt), "preprocess_ms": 1e3 * ((t3 - t2) + (t2 - t1 - t_tgt)),
+            "register_ms": 1e3 * (t4 - t3),
+            "points_in": float(src.num_input), "points_registered": float(len(src_points)),
+            "points_target": float(len(tgt_points)),
+            "initial_guess_won": float(result.start == "initial_guess"),  # refinement from the guess won
+        }, low_confidence))
+
+    def _publish_loop(self) -> None:
+        while (job := self._outbox.get()) is not None:
+            try:
+                self._publish(job)
+            except Exception as exc:  # noqa: BLE001 (keep the publisher alive whatever one result does)
+                self._fail("internal_error", f"unexpected {type(exc).__name__} while publishing: {exc}")
+
+    def _publish(self, job: _Publication) -> None:
+        """Encode and publish one result (aligned cloud, transform, pose, tf, generated cloud), then count it."""
+        c, result, header = self._config, job.result, job.header
+        t0 = time.perf_counter()
+        T_target_source = result.transformation
+        aligned = transform_cloud(header, job.source, T_target_source)
+        transform = matrix_to_msg(T_target_source, header, job.source_frame)
         pose = matrix_to_pose_msg(T_target_source, header, getattr(result, "covariance", None))
-        t5 = time.perf_counter()
+        t1 = time.perf_counter()
         self._pubs["aligned_cloud"].publish(aligned)
         self._pubs["transform"].publish(transform)
         self._pubs["pose"].publish(pose)
@@ -481,22 +535,10 @@ class RegisterNode(LifecycleNode):
             self._tf_broadcaster.sendTransform(transform)
         if c.publish_generated:
             self._pubs["generated_cloud"].publish(xyz_to_msg(header, result.source_generated))
-        t6 = time.perf_counter()
-        if low_confidence:  # published, yet flagged: a user must not mistake it for a good result
-            self._warn("low_confidence", f"published a low-confidence result: confidence {result.confidence:.2f} < "
-                       f"warn_confidence {c.warn_confidence} (fitness {result.fitness:.2f})")
-        with self._lock:
-            if generation == self._generation:  # no reset since the pair was taken
-                self._last_T, self._last_T_time = T_target_source, time.monotonic()
-        overhead = (t1 - t0) + t_tgt + (t6 - t4)
-        self._stats.ok(latency, overhead, {
-            "fitness": result.fitness, "confidence": result.confidence, "inlier_rmse_m": result.inlier_rmse,
-            "decode_ms": 1e3 * ((t1 - t0) + t_tgt), "preprocess_ms": 1e3 * ((t3 - t2) + (t2 - t1 - t_tgt)),
-            "register_ms": 1e3 * (t4 - t3), "encode_ms": 1e3 * (t5 - t4), "publish_ms": 1e3 * (t6 - t5),
-            "points_in": float(src.num_input), "points_registered": float(len(src_points)),
-            "points_target": float(len(tgt_points)),
-            "initial_guess_won": float(result.start == "initial_guess"),  # refinement from the guess won
-        }, low_confidence)
+        t2 = time.perf_counter()
+        self._stats.ok(job.latency, job.overhead + (t2 - t0),
+                       {**job.timings, "encode_ms": 1e3 * (t1 - t0), "publish_ms": 1e3 * (t2 - t1)},
+                       job.low_confidence)
 
     def _result_status(self, result, header: Header, source_frame: str, guess_origin: str, latency: float,
                        rejected: str, low_confidence: bool) -> DiagnosticArray:

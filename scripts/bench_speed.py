@@ -1,18 +1,23 @@
 #!/usr/bin/env python3
-"""Speed benchmark of the core (issue 2, "Speed"): ms per registration beside Open3D baselines.
+"""Speed benchmark of the core (issue 15, "Speed"): the registration API beside classical baselines.
 
-    python scripts/bench_speed.py --threads 2 --repeats 20
+    python scripts/bench_speed.py --threads 1 2
 
-For N = 512, 1024 and 2048: an untrained model of the shipped `modelnet40` architecture at that N (speed
-does not depend on the weights; `--checkpoint` times a trained model, and its architecture, at its own N
-instead)
-registers the same pairs as Open3D point-to-point ICP (from identity) and FPFH + RANSAC, in this run,
-batch 1, with the given thread count; medians over the pairs. Pairs: ModelNet40 unseen categories
-(unit box, paper transform) for N <= 1024 (the shapes have 1024 points), 7-Scenes redkitchen
-validation FMR-style pairs (unit box) for N = 2048. GenReg's time is split into preprocessing
-(validation, normalisation, resampling), network, PDSAC and postprocessing (fitness, mapping back).
-Goal printed beside it: <= 30 ms at N = 1024. Then a real 7-Scenes pair at full resolution (~300k
-points per cloud, metres) end to end, goal < 1 s.
+Each thread count runs in its own subprocess (OpenMP reads its thread count once, before Open3D loads):
+torch intra-op threads, OMP_NUM_THREADS (Open3D, the scores' k-d tree) and small_gicp workers all get it,
+OMP_WAIT_POLICY=PASSIVE. Every figure is a median in ms, batch 1 unless stated; baselines include their
+own downsampling, normals and features.
+- Real pair: 7-Scenes redkitchen frames 810 -> 800 at full resolution (~270k points each, metres). The API
+  with the shipped `7scenes` model, without refinement and with point-to-plane refinement, split into its
+  stages (`RegistrationResult.timings`), beside Open3D point-to-plane ICP from identity (2.5 cm voxels),
+  small_gicp GICP (2.5 cm voxels) and FPFH + RANSAC + ICP (5 cm feature voxels).
+- Objects: the shipped `modelnet40` and `modelnet40_partial` models at N=512 on ModelNet40 unseen-category
+  pairs (unit box), beside FPFH + RANSAC on the same pairs.
+- The issue's goals: API / point-to-plane ICP <= 0.25 without refinement and <= 0.35 with it, object
+  model / FPFH + RANSAC <= 0.4, network + PDSAC <= 10 ms at N=512, preprocess + postprocess <= 4 ms on
+  the real pair.
+- Throughput: `register_many`, pairs per second at batch 1, 8 and 16 (object model on the ModelNet40 pairs,
+  scene model on copies of the real pair), and network + PDSAC alone (`measure_throughput`).
 """
 
 from __future__ import annotations
@@ -20,133 +25,286 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import statistics
+import subprocess
 import sys
+import tempfile
+import time
+from collections.abc import Callable, Sequence
 from pathlib import Path
+from typing import TYPE_CHECKING, Any
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
-GOAL_MS_N1024 = 30.0
-GOAL_S_FRAME = 1.0
-
-
-def parse_args() -> argparse.Namespace:
-    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    p.add_argument("--threads", type=int, default=2)
-    p.add_argument("--repeats", type=int, default=20, help="pairs per N (median over them)")
-    p.add_argument("--sizes", type=int, nargs="+", default=[512, 1024, 2048])
-    p.add_argument("--frame-repeats", type=int, default=3, help="repeats of the 300k-point frame pair")
-    p.add_argument("--batch", type=int, default=16, help="batched network + PDSAC throughput (0: skip)")
-    p.add_argument("--checkpoint", help="time this checkpoint (name or path) at its own N instead of untrained "
-                   "models of the shipped architecture at --sizes")
-    p.add_argument("--json", help="also write the figures to this JSON file")
-    return p.parse_args()
-
-
-def main() -> int:
-    args = parse_args()
-    from genreg_core.bench.cli import configure_threads
-
-    configure_threads(args.threads)  # before Open3D loads
-
-    from dataclasses import replace
-
-    import numpy as np
-    import torch
-
-    from genreg_core.bench.baselines import BaselineParams, fpfh_ransac, icp_point_to_point
-    from genreg_core.bench.methods import measure_throughput
-    from genreg_core.bench.runner import thread_report
-    from genreg_core.checkpoint import load_checkpoint
-    from genreg_core.config import RegistrationConfig
-    from genreg_core.data import REDKITCHEN_VAL_FRAMES, FMRPairs, ModelNetPairs, RGBDSequence, load_modelnet40
-    from genreg_core.model import build_model
+if TYPE_CHECKING:
+    from genreg_core.bench.baselines import BaselineFn, BaselineParams
     from genreg_core.registration import Registrar
 
-    def med(xs: list[float]) -> float:  # seconds -> median ms
-        return 1e3 * float(np.median(xs))
+SCENE_FRAMES = (810, 800)  # redkitchen source -> target
+SCENE_VOXEL = 0.025  # m: ICP and small_gicp downsampling
+OBJECT_MODELS = ("modelnet40", "modelnet40_partial")
+OBJECT_POINTS = 512
+STAGES = ("preprocess", "network", "pdsac", "refine", "postprocess")
+Figures = dict[str, Any]
 
-    threads = thread_report(args.threads)
-    load_start = os.getloadavg()[0]
-    print(f"threads: {args.threads} (torch {threads['torch']}, OMP_NUM_THREADS={threads['OMP_NUM_THREADS']}, "
-          f"OMP_WAIT_POLICY={threads['OMP_WAIT_POLICY']}); {args.repeats} pairs per N, batch 1, medians; "
-          f"1-min load average {load_start:.1f} on {os.cpu_count()} CPUs (other jobs included)")
 
-    def registrar(n: int) -> Registrar:
-        if args.checkpoint:
-            return Registrar.from_checkpoint(args.checkpoint, RegistrationConfig(seed=0))
-        torch.manual_seed(0)
-        shipped = load_checkpoint("modelnet40")[0].config
-        return Registrar(build_model(replace(shipped, num_points=n)), RegistrationConfig(seed=0))
+def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("--threads", type=int, nargs="+", default=[1, 2], help="thread counts, one subprocess each")
+    p.add_argument("--repeats", type=int, default=9, help="API runs on the real pair (median)")
+    p.add_argument("--baseline-repeats", type=int, default=3, help="baseline runs on the real pair (median)")
+    p.add_argument("--object-pairs", type=int, default=20, help="ModelNet40 pairs (median over them)")
+    p.add_argument("--batches", type=int, nargs="+", default=[1, 8, 16], help="register_many batch sizes")
+    p.add_argument("--json", help="also write every figure to this JSON file")
+    p.add_argument("--worker-out", help=argparse.SUPPRESS)  # internal: measure one thread count, write JSON
+    return p.parse_args(argv)
 
-    if args.checkpoint:
-        args.sizes = [registrar(0).num_points]
 
-    unit, metric = BaselineParams.unit_box(args.threads), BaselineParams.metric_scene(args.threads)
-    redkitchen = RGBDSequence.redkitchen()
+# --- measuring (worker process) ---------------------------------------------------------------------------
+
+def median_ms(seconds: Sequence[float]) -> float:
+    return 1e3 * statistics.median(seconds)
+
+
+def api_ms(registrar: Registrar, pairs: Sequence[tuple[Any, Any]]) -> dict[str, float]:
+    """Median wall time of `register` ('wall') and of each stage of its timings over the pairs (warm-up first)."""
+    registrar.register(*pairs[0])
+    wall: list[float] = []
+    stages: dict[str, list[float]] = {}
+    for source, target in pairs:
+        t0 = time.perf_counter()
+        result = registrar.register(source, target)
+        wall.append(time.perf_counter() - t0)
+        for stage, seconds in result.timings.items():
+            stages.setdefault(stage, []).append(seconds)
+    return {"wall": median_ms(wall), **{stage: median_ms(s) for stage, s in stages.items()}}
+
+
+def baseline_ms(fn: BaselineFn, pairs: Sequence[tuple[Any, Any]], params: BaselineParams) -> float:
+    """Median of the baseline's own wall time over the pairs (warm-up first)."""
+    fn(*pairs[0], params)
+    return median_ms([fn(source, target, params)[1] for source, target in pairs])
+
+
+def throughput(registrar: Registrar, pairs: Sequence[tuple[Any, Any]], batches: Sequence[int]) -> dict[str, float]:
+    """Pairs per second of `register_many` at each batch size: the same max(batches) pairs (cycled) in
+    batches of that size, one pass after a warm-up batch."""
+    work = [pairs[k % len(pairs)] for k in range(max(batches))]
+    rates = {}
+    for batch in batches:
+        registrar.register_many(work[:batch])
+        t0 = time.perf_counter()
+        for start in range(0, len(work), batch):
+            registrar.register_many(work[start:start + batch])
+        rates[str(batch)] = len(work) / (time.perf_counter() - t0)
+    return rates
+
+
+def scene_figures(args: argparse.Namespace, threads: int) -> Figures:
+    """The real pair: the API (plain, point-to-plane) and the baselines, and register_many throughput."""
+    from dataclasses import replace
+
+    from genreg_core.bench.baselines import (
+        BaselineParams,
+        fpfh_ransac_icp,
+        icp_point_to_plane,
+        small_gicp_gicp,
+    )
+    from genreg_core.config import RefineConfig, RegistrationConfig
+    from genreg_core.data import RGBDSequence
+    from genreg_core.registration import Registrar
+
+    sequence = RGBDSequence.redkitchen()
+    pair = (sequence.points(SCENE_FRAMES[0]), sequence.points(SCENE_FRAMES[1]))
+    plain = Registrar.from_checkpoint("7scenes", RegistrationConfig(seed=0))
+    p2plane = Registrar(plain.model, RegistrationConfig(seed=0, refine=RefineConfig(method="point_to_plane")))
+    params = replace(BaselineParams.metric_scene(threads), icp_voxel_size=SCENE_VOXEL, gicp_voxel_size=SCENE_VOXEL)
+    baseline_pairs = [pair] * args.baseline_repeats
+    return {
+        "points": [len(pair[0]), len(pair[1])],
+        "api": api_ms(plain, [pair] * args.repeats),
+        "api_p2plane": api_ms(p2plane, [pair] * args.repeats),
+        "icp_p2plane": baseline_ms(icp_point_to_plane, baseline_pairs, params),
+        "small_gicp": baseline_ms(small_gicp_gicp, baseline_pairs, params),
+        "fpfh_ransac_icp": baseline_ms(fpfh_ransac_icp, baseline_pairs, params),
+        "throughput": throughput(plain, [pair], args.batches),
+    }
+
+
+def object_figures(args: argparse.Namespace, threads: int) -> Figures:
+    """ModelNet40 unseen pairs: each object model through the API, FPFH + RANSAC, and throughputs."""
+    import numpy as np
+
+    from genreg_core.bench.baselines import BaselineParams, fpfh_ransac
+    from genreg_core.bench.methods import measure_throughput
+    from genreg_core.config import RegistrationConfig
+    from genreg_core.data import ModelNetPairs, load_modelnet40
+    from genreg_core.registration import Registrar
+
+    dataset = ModelNetPairs(load_modelnet40("test", "unseen"), OBJECT_POINTS, seed=0)
+    indices = np.linspace(0, len(dataset) - 1, args.object_pairs).astype(int).tolist()
+    pairs = [(dataset[i]["source"], dataset[i]["target"]) for i in indices]
+    figures: Figures = {"pairs": len(pairs), "fpfh_ransac": baseline_ms(fpfh_ransac, pairs,
+                                                                        BaselineParams.unit_box(threads))}
+    for name in OBJECT_MODELS:
+        registrar = Registrar.from_checkpoint(name, RegistrationConfig(seed=0), num_points=OBJECT_POINTS)
+        figures[name] = api_ms(registrar, pairs)
+        figures[name]["throughput"] = throughput(registrar, pairs, args.batches)
+        batched = measure_throughput(registrar, dataset, indices, max(args.batches))
+        figures[name]["net_pdsac_batch1"] = batched["ms_batch1"]
+        figures[name]["net_pdsac_batched"] = batched["ms_per_pair_batched"]
+    return figures
+
+
+def measure(args: argparse.Namespace) -> Figures:
+    """Every figure at one thread count (this process's only one)."""
+    threads = args.threads[0]
+    from genreg_core.bench.cli import configure_threads
+
+    configure_threads(threads)  # before torch and Open3D run anything
+    import open3d as o3d
+
+    from genreg_core.bench.runner import thread_report
+
+    o3d.utility.set_verbosity_level(o3d.utility.VerbosityLevel.Error)
+    load = os.getloadavg()[0]
+    figures = {"threads": thread_report(threads), "scene": scene_figures(args, threads),
+               "objects": object_figures(args, threads)}
+    figures["load_average"] = [load, os.getloadavg()[0]]
+    return figures
+
+
+def run_workers(args: argparse.Namespace) -> dict[int, Figures]:
+    """One subprocess per thread count; their figures by thread count."""
+    options = ["--repeats", str(args.repeats), "--baseline-repeats", str(args.baseline_repeats),
+               "--object-pairs", str(args.object_pairs), "--batches", *map(str, args.batches)]
+    results = {}
+    for threads in args.threads:
+        with tempfile.TemporaryDirectory() as tmp:
+            out = Path(tmp) / "figures.json"
+            subprocess.run([sys.executable, __file__, *options, "--threads", str(threads), "--worker-out", str(out)],
+                           check=True)
+            results[threads] = json.loads(out.read_text())
+    return results
+
+
+# --- reporting (parent process) ---------------------------------------------------------------------------
+
+def table(headers: Sequence[str], rows: Sequence[Sequence[object]]) -> str:
+    """A markdown table; floats with one decimal (two below 1)."""
+    def cell(v: object) -> str:
+        return (f"{v:.2f}" if abs(v) < 1 else f"{v:.1f}") if isinstance(v, float) else str(v)
+
+    lines = ["| " + " | ".join(headers) + " |", "|" + "---|" * len(headers)]
+    return "\n".join(lines + ["| " + " | ".join(cell(v) for v in row) + " |" for row in rows])
+
+
+def stage_split(api: dict[str, float]) -> str:
+    """'preprocess / network / PDSAC / refine / postprocess' ms of one API row."""
+    return " / ".join(f"{api.get(stage, 0.0):.1f}" for stage in STAGES)
+
+
+def print_scene(results: dict[int, Figures]) -> None:
+    threads = list(results)
+    scenes = [results[t]["scene"] for t in threads]
+    points = scenes[0]["points"]
+    print(f"\nReal pair: redkitchen {SCENE_FRAMES[0]} -> {SCENE_FRAMES[1]}, {points[0]} / {points[1]} points (m), "
+          "7scenes model; ms (API: wall time of `register`, and its stages preprocess / network / PDSAC / refine "
+          "/ postprocess)")
+    rows = [
+        ["API, no refinement", *(s["api"]["wall"] for s in scenes), *(stage_split(s["api"]) for s in scenes)],
+        ["API + point-to-plane", *(s["api_p2plane"]["wall"] for s in scenes),
+         *(stage_split(s["api_p2plane"]) for s in scenes)],
+        ["Open3D p2plane ICP (2.5 cm voxels)", *(s["icp_p2plane"] for s in scenes), *("" for _ in scenes)],
+        ["small_gicp GICP (2.5 cm voxels)", *(s["small_gicp"] for s in scenes), *("" for _ in scenes)],
+        ["FPFH + RANSAC + ICP (5 cm)", *(s["fpfh_ransac_icp"] for s in scenes), *("" for _ in scenes)],
+    ]
+    print(table(["method", *(f"{t} thr ms" for t in threads), *(f"{t} thr stages" for t in threads)], rows))
+    for t, s in zip(threads, scenes, strict=True):
+        for key, label in (("api", "no refinement"), ("api_p2plane", "point-to-plane")):
+            total = s[key]["total"]
+            shares = ", ".join(f"{stage} {100 * s[key].get(stage, 0.0) / total:.0f} %" for stage in STAGES)
+            print(f"stage shares, {t} thread(s), {label}: {shares}")
+
+
+def print_objects(results: dict[int, Figures]) -> None:
+    threads = list(results)
+    objects = [results[t]["objects"] for t in threads]
+    print(f"\nObjects: ModelNet40 unseen categories, N={OBJECT_POINTS}, {objects[0]['pairs']} pairs (unit box); ms")
     rows = []
-    for n in args.sizes:
-        if n <= 1024:
-            pairs, source = ModelNetPairs(load_modelnet40("test", "unseen"), n, seed=0), "ModelNet40 unseen"
-        else:
-            pairs, source = FMRPairs(redkitchen, REDKITCHEN_VAL_FRAMES, n, seed=0), "redkitchen FMR"
-        indices = np.linspace(0, len(pairs) - 1, args.repeats).astype(int).tolist()
-        reg = registrar(n)
-        first = pairs[indices[0]]
-        reg.register(first["source"], first["target"])  # warm-up
-        icp_point_to_point(first["source"], first["target"], unit)
-        stages: dict[str, list[float]] = {}
-        icp, ransac = [], []
-        for i in indices:
-            item = pairs[i]
-            for k, v in reg.register(item["source"], item["target"]).timings.items():
-                stages.setdefault(k, []).append(v)
-            icp.append(icp_point_to_point(item["source"], item["target"], unit)[1])
-            ransac.append(fpfh_ransac(item["source"], item["target"], unit)[1])
-        row = {"N": n, "pairs": source, **{f"{k}_ms": med(v) for k, v in stages.items()},
-               "icp_ms": med(icp), "fpfh_ransac_ms": med(ransac)}
-        if args.batch:
-            row["batched_ms_per_pair"] = measure_throughput(reg, pairs, indices, args.batch)["ms_per_pair_batched"]
-        rows.append(row)
+    for name in OBJECT_MODELS:
+        rows.append([f"API {name}", *(o[name]["wall"] for o in objects), *(stage_split(o[name]) for o in objects),
+                     *(f"{o[name]['net_pdsac_batched']:.1f}" for o in objects)])
+    rows.append(["FPFH + RANSAC", *(o["fpfh_ransac"] for o in objects), *("" for _ in objects), *("" for _ in objects)])
+    print(table(["method", *(f"{t} thr ms" for t in threads), *(f"{t} thr stages" for t in threads),
+                 *(f"{t} thr net+PDSAC batched/pair" for t in threads)], rows))
 
-    head = ("| N | pairs | GenReg total | preprocess | network | PDSAC | post | ICP p2p | FPFH+RANSAC | "
-            "GenReg/ICP | GenReg/RANSAC | net+PDSAC batched | goal |")
-    print("\n" + head + "\n" + "|---" * 13 + "|")
-    for r in rows:
-        goal = ""
-        if r["N"] == 1024:
-            gap = r["total_ms"] - GOAL_MS_N1024
-            goal = f"<= {GOAL_MS_N1024:.0f} ms: " + ("met" if gap <= 0 else f"missed by {gap:.1f} ms")
-        batched = f"{r['batched_ms_per_pair']:.1f} (x{args.batch})" if "batched_ms_per_pair" in r else "–"
-        print(f"| {r['N']} | {r['pairs']} | {r['total_ms']:.1f} | {r['preprocess_ms']:.1f} | {r['network_ms']:.1f} | "
-              f"{r['pdsac_ms']:.1f} | {r['postprocess_ms']:.1f} | {r['icp_ms']:.1f} | {r['fpfh_ransac_ms']:.1f} | "
-              f"{r['total_ms'] / r['icp_ms']:.1f}x | {r['total_ms'] / r['fpfh_ransac_ms']:.2f}x | {batched} | {goal} |")
-    weights = f"checkpoint {args.checkpoint}" if args.checkpoint else "untrained weights of the shipped architecture"
-    print(f"(ms; GenReg = network + PDSAC end to end through Registrar.register, {weights})")
 
-    # A real frame pair at full resolution, metres: the API resamples to N; baselines downsample themselves.
-    n_frame = 1024 if 1024 in args.sizes else args.sizes[0]
-    reg = registrar(n_frame)
-    src, tgt = redkitchen.points(810), redkitchen.points(800)
-    reg.register(src, tgt)  # warm-up
-    frame: dict[str, list[float]] = {}
-    for _ in range(args.frame_repeats):
-        for k, v in reg.register(src, tgt).timings.items():
-            frame.setdefault(k, []).append(v)
-    f_icp = [icp_point_to_point(src, tgt, metric)[1] for _ in range(args.frame_repeats)]
-    f_ransac = [fpfh_ransac(src, tgt, metric)[1] for _ in range(args.frame_repeats)]
-    total = med(frame["total"])
-    split = ", ".join(f"{k} {med(v):.0f}" for k, v in frame.items() if k != "total")
-    print(f"\n7-Scenes redkitchen frames 810 -> 800: {len(src)} / {len(tgt)} points, GenReg N={n_frame}: "
-          f"{total:.0f} ms end to end ({split}); goal < {GOAL_S_FRAME * 1e3:.0f} ms: "
-          f"{'met' if total < GOAL_S_FRAME * 1e3 else 'missed'}. Same pair: ICP p2p (2 cm voxels) {med(f_icp):.0f} ms, "
-          f"FPFH+RANSAC (5 cm voxels) {med(f_ransac):.0f} ms.")
-    print(f"1-min load average at the end: {os.getloadavg()[0]:.1f}")
+def goals(figures: Figures) -> list[tuple[str, float, float]]:
+    """(goal, value, limit) of issue 15 at one thread count; the value must be <= the limit."""
+    scene, objects = figures["scene"], figures["objects"]
+    rows = [
+        ("API / p2plane ICP, no refinement", scene["api"]["wall"] / scene["icp_p2plane"], 0.25),
+        ("API + p2plane / p2plane ICP", scene["api_p2plane"]["wall"] / scene["icp_p2plane"], 0.35),
+    ]
+    for name in OBJECT_MODELS:
+        rows.append((f"{name} / FPFH + RANSAC", objects[name]["wall"] / objects["fpfh_ransac"], 0.4))
+        rows.append((f"{name} network + PDSAC, ms", objects[name]["network"] + objects[name]["pdsac"], 10.0))
+    api = scene["api"]
+    rows.append(("real pair preprocess + postprocess, ms", api["preprocess"] + api["postprocess"], 4.0))
+    return rows
+
+
+def print_goals(results: dict[int, Figures]) -> None:
+    threads = list(results)
+    per_thread = [goals(results[t]) for t in threads]
+    rows = []
+    for k, (label, _, limit) in enumerate(per_thread[0]):
+        values = [g[k][1] for g in per_thread]
+        verdicts = ["met" if v <= limit else f"missed (x{v / limit:.1f})" for v in values]
+        rows.append([label, *(f"{v:.2f}" for v in values), f"<= {limit:g}", *verdicts])
+    print("\nGoals (issue 15)")
+    print(table(["goal", *(f"{t} thr" for t in threads), "goal", *(f"{t} thr" for t in threads)], rows))
+
+
+def print_throughput(results: dict[int, Figures]) -> None:
+    threads = list(results)
+    batches = list(results[threads[0]]["scene"]["throughput"])
+    rows = []
+    for t in threads:
+        objects, scene = results[t]["objects"], results[t]["scene"]
+        for name in OBJECT_MODELS:
+            rows.append([f"{name}, ModelNet40 pairs", t, *(objects[name]["throughput"][b] for b in batches)])
+        rows.append(["7scenes, the real pair", t, *(scene["throughput"][b] for b in batches)])
+    print("\nregister_many throughput, pairs per second (no refinement)")
+    print(table(["model, pairs", "threads", *(f"batch {b}" for b in batches)], rows))
+
+
+def print_header(results: dict[int, Figures], load_start: float) -> None:
+    settings = "; ".join(f"{t}: torch {r['threads']['torch']}, OMP_NUM_THREADS={r['threads']['OMP_NUM_THREADS']}, "
+                         f"OMP_WAIT_POLICY={r['threads']['OMP_WAIT_POLICY']}" for t, r in results.items())
+    print(f"threads ({settings}); one subprocess per thread count; medians; 1-min load average {load_start:.2f} "
+          f"at the start, {os.getloadavg()[0]:.2f} at the end, on {os.cpu_count()} CPUs (other jobs included)")
+
+
+def report(results: dict[int, Figures], load_start: float) -> None:
+    sections: tuple[Callable[[dict[int, Figures]], None], ...] = (print_scene, print_objects, print_goals,
+                                                                  print_throughput)
+    print_header(results, load_start)
+    for section in sections:
+        section(results)
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = parse_args(argv)
+    if args.worker_out:
+        Path(args.worker_out).write_text(json.dumps(measure(args)))
+        return 0
+    load_start = os.getloadavg()[0]
+    results = run_workers(args)
+    report(results, load_start)
     if args.json:
-        frame_row = {"points": [len(src), len(tgt)], "N": n_frame, **{f"{k}_ms": med(v) for k, v in frame.items()},
-                     "icp_ms": med(f_icp), "fpfh_ransac_ms": med(f_ransac)}
-        load = {"start": load_start, "end": os.getloadavg()[0]}
-        Path(args.json).write_text(json.dumps({"threads": threads, "load_average": load, "rows": rows,
-                                               "frame_pair": frame_row}, indent=1))
+        Path(args.json).write_text(json.dumps({str(t): r for t, r in results.items()}, indent=1))
     return 0
 
 

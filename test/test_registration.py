@@ -5,10 +5,11 @@ import dataclasses
 import numpy as np
 import pytest
 import torch
+from scipy.spatial.transform import Rotation
 from test_model import SMALL
 
 from genreg_core.checkpoint import save_checkpoint
-from genreg_core.config import RefineConfig, RegistrationConfig
+from genreg_core.config import FallbackConfig, RefineConfig, RegistrationConfig
 from genreg_core.data.rgbd import RGBDSequence
 from genreg_core.errors import (
     CheckpointError,
@@ -290,3 +291,23 @@ def test_register_many_with_a_metric_threshold_on_pairs_of_different_scales_matc
     for order in (pairs, pairs[::-1]):
         first = reg.register_many(order)[0]
         np.testing.assert_allclose(first.transformation, reg.register(*order[0]).transformation, atol=1e-6)
+
+
+def test_opt_in_fallback_rescues_a_wrong_estimate_beyond_the_guards_reach():
+    """The network's estimate is consistently wrong (90 deg off) and the true motion (120 deg) is beyond ICP
+    from identity: with the guard alone the result stays wrong; with the opt-in FPFH + RANSAC fallback the
+    true pose is found and reported as `start == "fallback"` (ground truth: the known transform)."""
+    src = _shape(3000)
+    T = np.eye(4)
+    T[:3, :3] = Rotation.from_rotvec(np.deg2rad(120.0) * np.array([0.3, -0.5, 0.8]) / np.linalg.norm([0.3, -0.5, 0.8])
+                                     ).as_matrix()
+    T[:3, 3] = [0.3, -0.2, 0.1]
+    tgt = apply_transform(T, src)
+    net = _WrongNet(SMALL)
+    refine = RefineConfig(method="point_to_point")
+    off = Registrar(net, RegistrationConfig(refine=refine)).register(src, tgt)
+    on = Registrar(net, RegistrationConfig(refine=refine, fallback=FallbackConfig(method="fpfh_ransac"))).register(
+        src, tgt)
+    assert transform_errors(off.transformation, T)[0] > 20.0 and off.start != "fallback"  # control
+    re, te = transform_errors(on.transformation, T)
+    assert on.start == "fallback" and re < 1.0 and te < 0.02, (re, te)

@@ -1,7 +1,8 @@
 """Classical registration baselines (Open3D, small_gicp, KISS-Matcher), configured as a skilled user would.
 
-ICP, downsampling and normals are the core's (`genreg_core.refine.icp`, the one ICP wrapper); FPFH,
-RANSAC, FGR, small_gicp and KISS-Matcher (pip `kiss-matcher`, imported on first use) live here.
+ICP, downsampling and normals are the core's (`genreg_core.refine.icp`, the one ICP wrapper), FPFH and
+RANSAC the core's fallback (`genreg_core.fallback`); FGR, small_gicp and KISS-Matcher (pip
+`kiss-matcher`, imported on first use) live here.
 
 Every method is a plain function `(source, target, params) -> (T, seconds)`:
 - source (N, 3) and target (M, 3) arrays in any units (unit box for objects, metres for scenes);
@@ -27,7 +28,9 @@ import numpy as np
 import open3d as o3d
 import small_gicp
 
-from genreg_core.refine import downsample, estimate_normals, icp, o3d_cloud
+from genreg_core import fallback
+from genreg_core.fallback import fpfh
+from genreg_core.refine import icp
 
 reg = o3d.pipelines.registration
 
@@ -91,25 +94,11 @@ class BaselineParams:
 BaselineFn = Callable[[np.ndarray, np.ndarray, BaselineParams], tuple[np.ndarray, float]]
 
 
-def fpfh(points: np.ndarray, p: BaselineParams) -> tuple[o3d.geometry.PointCloud, reg.Feature]:
-    """The downsampled cloud (radius normals) and its FPFH features."""
-    cloud = estimate_normals(downsample(o3d_cloud(points), p.feature_voxel_size), p.normal_radius)
-    feature = reg.compute_fpfh_feature(cloud, o3d.geometry.KDTreeSearchParamHybrid(radius=p.fpfh_radius, max_nn=100))
-    return cloud, feature
-
-
 def ransac(source: np.ndarray, target: np.ndarray, p: BaselineParams) -> np.ndarray:
-    """FPFH + Open3D feature RANSAC: the 4x4 target_from_source it finds."""
-    src, src_f = fpfh(source, p)
-    tgt, tgt_f = fpfh(target, p)
-    distance = p.ransac_distance
-    o3d.utility.random.seed(p.seed)
-    result = reg.registration_ransac_based_on_feature_matching(
-        src, tgt, src_f, tgt_f, True, distance, reg.TransformationEstimationPointToPoint(False), 3,
-        [reg.CorrespondenceCheckerBasedOnEdgeLength(0.9), reg.CorrespondenceCheckerBasedOnDistance(distance)],
-        reg.RANSACConvergenceCriteria(p.ransac_max_iterations, p.ransac_confidence),
-    )
-    return np.asarray(result.transformation).copy()
+    """FPFH + Open3D feature RANSAC (`genreg_core.fallback.fpfh_ransac`) with these settings."""
+    return fallback.fpfh_ransac(source, target, voxel_size=p.feature_voxel_size, normal_radius=p.normal_radius,
+                       fpfh_radius=p.fpfh_radius, distance=p.ransac_distance, max_iterations=p.ransac_max_iterations,
+                       confidence=p.ransac_confidence, seed=p.seed)
 
 
 def icp_point_to_point(source: np.ndarray, target: np.ndarray, p: BaselineParams) -> tuple[np.ndarray, float]:
@@ -131,8 +120,8 @@ def icp_point_to_plane(source: np.ndarray, target: np.ndarray, p: BaselineParams
 def fpfh_fgr(source: np.ndarray, target: np.ndarray, p: BaselineParams) -> tuple[np.ndarray, float]:
     """FPFH features on voxel-downsampled clouds, then Open3D Fast Global Registration (absolute scale)."""
     t0 = time.perf_counter()
-    src, src_f = fpfh(source, p)
-    tgt, tgt_f = fpfh(target, p)
+    src, src_f = fpfh(source, p.feature_voxel_size, p.normal_radius, p.fpfh_radius)
+    tgt, tgt_f = fpfh(target, p.feature_voxel_size, p.normal_radius, p.fpfh_radius)
     option = reg.FastGlobalRegistrationOption(
         use_absolute_scale=True, decrease_mu=True, maximum_correspondence_distance=p.fgr_distance
     )

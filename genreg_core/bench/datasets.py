@@ -34,7 +34,6 @@ from typing import Any
 
 import numpy as np
 from scipy.spatial import cKDTree
-from scipy.spatial.transform import Rotation
 from torch.utils.data import ConcatDataset, Dataset
 
 from genreg_core.bench.baselines import BaselineParams
@@ -48,7 +47,7 @@ from genreg_core.data import (
     load_modelnet40,
 )
 from genreg_core.data.modelnet40 import rpmnet_crop_pair
-from genreg_core.geometry import apply_transform, invert_transform, make_transform
+from genreg_core.geometry import apply_transform, invert_transform, kidnap_motion
 from genreg_core.metrics import chamfer_distance, transform_errors
 
 OBJECT, SCENE = "object", "scene"
@@ -178,17 +177,6 @@ class RPMNetPairs(Dataset):
         label = int(self.shapes.labels[index])
         return {"source": source.astype(np.float32), "target": target.astype(np.float32), "transform": T,
                 "label": label, "category": self.shapes.class_names[label]}
-
-
-def kidnap_motion(rng: np.random.Generator, center: np.ndarray, max_angle_deg: float = 45.0,
-                  max_translation: float = 0.5) -> np.ndarray:
-    """The 4x4 motion x -> R (x - center) + center + t: R by an angle uniform in [0, max_angle_deg] about a
-    uniformly random axis, t of uniformly random direction and length uniform in [0, max_translation]."""
-    axis, direction = rng.normal(size=3), rng.normal(size=3)
-    angle = np.deg2rad(rng.uniform(0.0, max_angle_deg))
-    R = Rotation.from_rotvec(angle * axis / np.linalg.norm(axis)).as_matrix()
-    t = rng.uniform(0.0, max_translation) * direction / np.linalg.norm(direction)
-    return make_transform(R, center - R @ center + t)
 
 
 class KidnapPairs(Dataset):

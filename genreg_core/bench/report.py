@@ -285,7 +285,7 @@ def markdown(run: BenchRun, thresholds: Sequence[float] = DEFAULT_CONFIDENCE_THR
         f" with OMP_WAIT_POLICY={th['OMP_WAIT_POLICY']}, small_gicp {th['small_gicp']})."),
         (f"- Checkpoints: objects `{ck['object']}`, scenes `{ck['scene']}`. `genreg` = network + PDSAC; "
         "`genreg+icp` = the API's point-to-point ICP refinement after it, with its guard (below confidence "
-        "`refine.guard_below`, ICP from identity competes and the better-overlapping result wins)."),
+        "`refine.guard_below`, ICP from identity competes and the more confident result wins)."),
         ("- RE: angle of R_est R_gt^T (deg). TE: |t_est - t_gt| in the dataset's units. CD: mean of the two "
         f"mean nearest-neighbour distances, on at most {m['options']['cd_points']} random points per cloud; "
         "the `ground truth` row is the CD at the true pose (the floor)."),

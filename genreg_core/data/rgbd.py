@@ -25,6 +25,7 @@ from genreg_core.errors import ConfigError, DataNotFoundError, TooFewPointsError
 from genreg_core.geometry import (
     apply_transform,
     invert_transform,
+    kidnap_motion,
     normalize_pair,
     random_transform,
     unit_box_normalization,
@@ -252,8 +253,10 @@ class FramePairs(Dataset):
     optical frames (metres), transform = T_target_source = relative_pose(i + gap, i) (float32). With
     num_points, each cloud is an independent random subset of that size (with replacement only if the
     frame has fewer valid points) drawn with rng (seed, epoch, k); otherwise all valid points (sizes vary,
-    so batch with a custom collate). normalize=True applies `geometry.normalize_pair`: the source fills
-    [0, 1]^3 and the transform is adjusted (unit-box units); the item then also holds offset and scale.
+    so batch with a custom collate). kidnap=True moves the source by a further `geometry.kidnap_motion`
+    about its centroid (rng (seed, epoch, index, 2)) and adjusts the transform (a robot that lost its pose).
+    normalize=True applies `geometry.normalize_pair`: the source fills [0, 1]^3 and the transform is
+    adjusted (unit-box units); the item then also holds offset and scale.
     """
 
     def __init__(
@@ -265,6 +268,7 @@ class FramePairs(Dataset):
         seed: int = 0,
         normalize: bool = False,
         stride: int = 1,
+        kidnap: bool = False,
     ) -> None:
         if gap < 1:
             raise ConfigError(f"gap must be >= 1, got {gap}")
@@ -280,6 +284,7 @@ class FramePairs(Dataset):
         self.seed = int(seed)
         self.normalize = bool(normalize)
         self.stride = int(stride)
+        self.kidnap = bool(kidnap)
         self.epoch = 0
 
     def set_epoch(self, epoch: int) -> None:
@@ -297,6 +302,9 @@ class FramePairs(Dataset):
         source = self.sequence.points(source_index, self.stride)
         target = self.sequence.points(target_index, self.stride)
         T = self.sequence.relative_pose(source_index, target_index)
+        if self.kidnap:
+            M = kidnap_motion(np.random.default_rng((self.seed, self.epoch, index, 2)), source.mean(axis=0))
+            source, T = apply_transform(M, source), T @ invert_transform(M)
         if self.num_points is not None:
             rng = np.random.default_rng((self.seed, self.epoch, index))
             source = _subset(source, self.num_points, rng)

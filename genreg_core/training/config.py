@@ -17,6 +17,8 @@ class DataConfig:
     validation_variant: str = "clean"  # ModelNet40 validation pairs (seen-category test split): clean, crop, ...
     pair_modes: tuple[str, ...] = ("fmr", "frames")  # 7-Scenes: FMR-style and real frame pairs
     frame_gaps: tuple[int, ...] = (1, 5, 10)  # 7-Scenes real pairs (i, i+g)
+    frame_kidnap: bool = False  # 7-Scenes real pairs: source moved by a random kidnap motion (<= 45 deg, 0.5 m)
+    validation_frame_gap: int = 10  # 7-Scenes validation pairs (frames 800-999): this gap
     max_angle_deg: float = 45.0  # the paper's rotation range
     max_translation: float = 0.8
     balanced: bool = True  # category-balanced sampling (ModelNet40)

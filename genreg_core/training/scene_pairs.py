@@ -52,7 +52,7 @@ class MixedPairs:
                 p.max_angle_deg = value
 
 
-def _pairs(cfg: TrainConfig, frames: range, seed: int, gaps: tuple[int, ...]) -> MixedPairs:
+def _pairs(cfg: TrainConfig, frames: range, seed: int, gaps: tuple[int, ...], kidnap: bool) -> MixedPairs:
     d, n = cfg.data, cfg.model.num_points
     seq = RGBDSequence.redkitchen(d.root)
     parts: list[Any] = []
@@ -60,13 +60,14 @@ def _pairs(cfg: TrainConfig, frames: range, seed: int, gaps: tuple[int, ...]) ->
         parts.append(FMRPairs(seq, frames, num_points=n, seed=seed, max_angle_deg=d.max_angle_deg,
                               max_translation=d.max_translation, stride=PIXEL_STRIDE))
     if "frames" in d.pair_modes:
-        parts += [FramePairs(seq, g, frames, num_points=n, seed=seed, normalize=True, stride=PIXEL_STRIDE)
-                  for g in gaps]
+        parts += [FramePairs(seq, g, frames, num_points=n, seed=seed, normalize=True, stride=PIXEL_STRIDE,
+                             kidnap=kidnap) for g in gaps]
     return MixedPairs(parts)
 
 
 def build_scene_pair_sets(cfg: TrainConfig) -> tuple[MixedPairs, MixedPairs]:
     """(training pairs from frames 0-799, validation pairs from frames 800-999)."""
-    train = _pairs(cfg, REDKITCHEN_TRAIN_FRAMES, cfg.seed, tuple(cfg.data.frame_gaps))
-    val = _pairs(cfg, REDKITCHEN_VAL_FRAMES, cfg.seed + 1, (10,))
+    d = cfg.data
+    train = _pairs(cfg, REDKITCHEN_TRAIN_FRAMES, cfg.seed, tuple(d.frame_gaps), d.frame_kidnap)
+    val = _pairs(cfg, REDKITCHEN_VAL_FRAMES, cfg.seed + 1, (d.validation_frame_gap,), d.frame_kidnap)
     return train, val
