@@ -8,7 +8,7 @@ import torch
 from scipy.spatial.transform import Rotation
 from test_model import SMALL
 
-from genreg_core.checkpoint import save_checkpoint
+from genreg_core.checkpoint import load_checkpoint, save_checkpoint
 from genreg_core.config import FallbackConfig, RefineConfig, RegistrationConfig
 from genreg_core.data.rgbd import RGBDSequence
 from genreg_core.errors import (
@@ -218,14 +218,21 @@ def test_an_exact_initial_guess_is_kept_on_a_real_pair():
 
 def test_stray_points_neither_raise_confidence_nor_move_the_result():
     """Two stray points 60-200 m away in a 3 m kitchen scan: the robust extent ignores them, so the
-    distances in the normalised frame, the confidence and the pose stay (against the ground truth)."""
+    distances in the normalised frame, the confidence and the pose stay (against the ground truth). The
+    strays change the seeded subsample, so the confidence is compared as a mean over 4 seeds (its spread
+    from seed to seed is about 0.1)."""
     seq = RGBDSequence.redkitchen()
     src, tgt, T_gt = seq.points(870, stride=2), seq.points(860, stride=2), seq.relative_pose(870, 860)
-    reg = Registrar.from_checkpoint("7scenes", RegistrationConfig(refine=RefineConfig(method="point_to_plane")))
-    clean = reg.register(src, tgt)
-    stray = reg.register(np.vstack([src, [[60.0, 5.0, 3.0], [0.0, 200.0, 1.0]]]), np.vstack([tgt, [[80.0, -3.0, 0.0]]]))
-    assert stray.confidence <= clean.confidence + 0.02
-    assert transform_errors(stray.transformation, T_gt)[0] < 0.5 and transform_errors(clean.transformation, T_gt)[0] < 0.5
+    strays = np.vstack([src, [[60.0, 5.0, 3.0], [0.0, 200.0, 1.0]]]), np.vstack([tgt, [[80.0, -3.0, 0.0]]])
+    model, _ = load_checkpoint("7scenes")
+    conf = {"clean": [], "stray": []}
+    for seed in range(4):
+        reg = Registrar(model, RegistrationConfig(seed=seed, refine=RefineConfig(method="point_to_plane")))
+        for name, (s, t) in (("clean", (src, tgt)), ("stray", strays)):
+            res = reg.register(s, t)
+            conf[name].append(res.confidence)
+            assert transform_errors(res.transformation, T_gt)[0] < 0.5, (name, seed)
+    assert np.mean(conf["stray"]) <= np.mean(conf["clean"]) + 0.02, conf
 
 
 def test_covariance_is_symmetric_positive_definite_and_grows_with_the_residuals():
