@@ -150,7 +150,7 @@ class Registrar:
         return prepare_pair(source, target, initial_guess, num_points=self.num_points,
                             refine_points=cfg.refine.num_points, min_points=cfg.min_points, seed=cfg.seed)
 
-    @torch.no_grad()
+    @torch.inference_mode()
     def estimate(self, a: torch.Tensor, b: torch.Tensor, generator: torch.Generator | None = None,
                  timings: dict[str, float] | None = None, pdsac: PDSACConfig | None = None) -> Estimate:
         """Stages 2-5 on normalised (B, N, 3) batches, with `pdsac` settings in that frame (default: the

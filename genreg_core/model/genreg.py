@@ -30,8 +30,8 @@ from torch import nn
 
 from genreg_core.config import ModelConfig
 from genreg_core.model.gcnn import knn_indices
-from genreg_core.model.invariant import InvariantEncoder, gather_neighbours
-from genreg_core.model.layers import centroid, mlp, zero_last_layer
+from genreg_core.model.invariant import InvariantEncoder
+from genreg_core.model.layers import centroid, gather_neighbours, mlp, zero_last_layer
 from genreg_core.model.mixer import MixerLayer
 
 
@@ -53,7 +53,7 @@ class GenRegOutput:
 
 @dataclass
 class Encoded:
-    """Stage 1 output: centred clouds, their centroids and per-point features."""
+    """Stage 1 output: centred clouds, their centroids, per-point features and kNN graphs."""
 
     a0: torch.Tensor  # (B, N, 3) A - c_A
     b0: torch.Tensor  # (B, M, 3) B - c_B
@@ -61,6 +61,8 @@ class Encoded:
     c_b: torch.Tensor
     f_a: torch.Tensor  # (B, N, C)
     f_b: torch.Tensor  # (B, M, C)
+    knn_a: torch.Tensor | None = None  # (B, N, k) each point's k_neighbors nearest in A, nearest first
+    knn_b: torch.Tensor | None = None  # (B, M, k) likewise in B
 
 
 class PointMixerEncoder(nn.Module):
@@ -80,8 +82,9 @@ class PointMixerEncoder(nn.Module):
             for mixer in (self.mixer1, self.mixer2):  # token mixing starts as a no-op: point order is random
                 zero_last_layer(mixer.token_mlp)
 
-    def forward(self, points: torch.Tensor) -> torch.Tensor:
-        return self.mixer2(self.mixer1(self.gcnn(points)))
+    def forward(self, points: torch.Tensor, neighbours: torch.Tensor | None = None) -> torch.Tensor:
+        """neighbours: the kNN graph of `points` (B, N, k), or None to build it."""
+        return self.mixer2(self.mixer1(self.gcnn(points, neighbours)))
 
 
 class SoftPointer(nn.Module):
@@ -100,45 +103,52 @@ class SoftPointer(nn.Module):
         # Centred over each cloud's points: the component all points share carries no match.
         q = nn.functional.normalize(q - q.mean(dim=1, keepdim=True), dim=-1)
         k = nn.functional.normalize(k - k.mean(dim=1, keepdim=True), dim=-1)
-        return torch.log_softmax((q @ k.transpose(1, 2)) * self.log_sharpness.exp(), dim=-1)
+        logits, sharpness = q @ k.transpose(1, 2), self.log_sharpness.exp()
+        logits = logits * sharpness if torch.is_grad_enabled() else logits.mul_(sharpness)
+        return torch.log_softmax(logits, dim=-1)
 
 
 @dataclass
 class Match:
-    """Stage 2 output: log match weights A -> B (B, N, M) and B -> A (B, M, N), overlap logits or None."""
+    """Stage 2 output: log match weights A -> B (B, N, M) and B -> A (B, M, N), each point's best match
+    (the argmax of its row, found once for the overlap head and generation), overlap logits or None."""
 
     log_w_a: torch.Tensor
     log_w_b: torch.Tensor
+    best_a: torch.Tensor  # (B, N) index into B
+    best_b: torch.Tensor  # (B, M) index into A
     overlap_a: torch.Tensor | None = None  # (B, N)
     overlap_b: torch.Tensor | None = None  # (B, M)
 
 
-def pick(log_w: torch.Tensor, y: torch.Tensor, straight_through: bool) -> torch.Tensor:
-    """The best-matching point of y (B, M, 3) for each row of log_w (B, N, M): a real point, since a soft
-    mean of several candidates lands between them, off the surface. With `straight_through` (training)
-    gradients flow through the soft mean."""
-    best = torch.gather(y, 1, log_w.argmax(dim=-1, keepdim=True).expand(-1, -1, 3))
+def pick(log_w: torch.Tensor, best: torch.Tensor, y: torch.Tensor, straight_through: bool) -> torch.Tensor:
+    """The best-matching point of y (B, M, 3) for each row of log_w (B, N, M), `best` (B, N) its argmax:
+    a real point, since a soft mean of several candidates lands between them, off the surface. With
+    `straight_through` (training) gradients flow through the soft mean."""
+    best = torch.gather(y, 1, best[..., None].expand(-1, -1, 3))
     if not straight_through:
         return best
     soft = log_w.exp() @ y
     return best + (soft - soft.detach())
 
 
-def neighbour_mix(log_w: torch.Tensor, y: torch.Tensor, k: int) -> torch.Tensor:
-    """For each row of log_w (B, N, M): the mean of the best match's k nearest neighbours in y (B, M, 3),
-    the best included, weighted by their renormalised match weights. A convex combination of y's points
-    chosen by invariant quantities, so it moves with y under any rigid motion."""
-    knn = knn_indices(y, k)  # (B, M, k), nearest first (the point itself)
-    candidates = torch.gather(knn, 1, log_w.argmax(dim=-1, keepdim=True).expand(-1, -1, k))  # (B, N, k)
+def neighbour_mix(log_w: torch.Tensor, best: torch.Tensor, y: torch.Tensor, k: int,
+                  knn: torch.Tensor | None = None) -> torch.Tensor:
+    """For each row of log_w (B, N, M), `best` (B, N) its argmax: the mean of the best match's k nearest
+    neighbours in y (B, M, 3), the best included, weighted by their renormalised match weights. A convex
+    combination of y's points chosen by invariant quantities, so it moves with y under any rigid motion.
+    knn: y's kNN graph (B, M, >= k), nearest first, to take the k nearest from, or None to query them."""
+    knn = knn_indices(y, k) if knn is None else knn[..., :k]  # (B, M, k), nearest first (the point itself)
+    candidates = torch.gather(knn, 1, best[..., None].expand(-1, -1, k))  # (B, N, k)
     weights = torch.softmax(torch.gather(log_w, 2, candidates), dim=-1)
     points = gather_neighbours(y, candidates)  # (B, N, k, 3)
     return (weights[..., None] * points).sum(dim=2)
 
 
-def cycle_distance(log_w_x: torch.Tensor, log_w_y: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
+def cycle_distance(best_x: torch.Tensor, best_y: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
     """|x_i - x_i'| where i' is the pick of the pick of x_i (x -> y -> x): zero for consistent matches.
-    (B, N, M), (B, M, N), (B, N, 3) -> (B, N)."""
-    back = torch.gather(log_w_y.argmax(dim=-1), 1, log_w_x.argmax(dim=-1))  # (B, N)
+    Picks x -> y (B, N), y -> x (B, M), points (B, N, 3) -> (B, N)."""
+    back = torch.gather(best_y, 1, best_x)  # (B, N)
     return torch.linalg.norm(x - torch.gather(x, 1, back[..., None].expand(-1, -1, 3)), dim=-1)
 
 
@@ -173,25 +183,32 @@ class GenRegNet(nn.Module):
             raise ValueError(f"GenRegNet expects {n} points, got {a.shape[1]} and {b.shape[1]}")
         c_a, c_b = centroid(a), centroid(b)
         a0, b0 = a - c_a, b - c_b
-        f_a, f_b = self.encoder(torch.cat([a0, b0], dim=0)).chunk(2, dim=0)
-        return Encoded(a0, b0, c_a, c_b, f_a, f_b)
+        centred = torch.cat([a0, b0], dim=0)
+        graph = knn_indices(centred, self.config.k_neighbors)
+        f_a, f_b = self.encoder(centred, graph).chunk(2, dim=0)
+        return Encoded(a0, b0, c_a, c_b, f_a, f_b, *graph.chunk(2, dim=0))
 
     def interact(self, enc: Encoded) -> Match:
         """Stage 2: log match weights both ways and, with the overlap head, per-point overlap logits."""
         log_w_a, log_w_b = self.pointer(enc.f_a, enc.f_b), self.pointer(enc.f_b, enc.f_a)
+        best_a, best_b = log_w_a.argmax(dim=-1), log_w_b.argmax(dim=-1)
         if self.overlap is None:
-            return Match(log_w_a, log_w_b)
-        return Match(log_w_a, log_w_b,
-                     self.overlap(enc.f_a, log_w_a, cycle_distance(log_w_a, log_w_b, enc.a0)),
-                     self.overlap(enc.f_b, log_w_b, cycle_distance(log_w_b, log_w_a, enc.b0)))
+            return Match(log_w_a, log_w_b, best_a, best_b)
+        return Match(log_w_a, log_w_b, best_a, best_b,
+                     self.overlap(enc.f_a, log_w_a, cycle_distance(best_a, best_b, enc.a0)),
+                     self.overlap(enc.f_b, log_w_b, cycle_distance(best_b, best_a, enc.b0)))
 
     def generate(self, enc: Encoded, match: Match) -> GenRegOutput:
         """Stage 3: A_g (A in B's frame) and B_g (B in A's frame) from the matches."""
         if self.config.generation == "neighbours":
-            k = self.config.generation_k
-            a_gen, b_gen = neighbour_mix(match.log_w_a, enc.b0, k), neighbour_mix(match.log_w_b, enc.a0, k)
+            # At inference the neighbours come from the encoder's graph (its first k are the k nearest);
+            # training keeps its own query, as it always has.
+            k, graphs = self.config.generation_k, (None, None) if self.training else (enc.knn_b, enc.knn_a)
+            a_gen = neighbour_mix(match.log_w_a, match.best_a, enc.b0, k, graphs[0])
+            b_gen = neighbour_mix(match.log_w_b, match.best_b, enc.a0, k, graphs[1])
         else:
-            a_gen, b_gen = pick(match.log_w_a, enc.b0, self.training), pick(match.log_w_b, enc.a0, self.training)
+            a_gen = pick(match.log_w_a, match.best_a, enc.b0, self.training)
+            b_gen = pick(match.log_w_b, match.best_b, enc.a0, self.training)
         overlap = None if match.overlap_a is None else (match.overlap_a, match.overlap_b)
         return GenRegOutput(a_gen + enc.c_b, b_gen + enc.c_a, (match.log_w_a, match.log_w_b), overlap)
 

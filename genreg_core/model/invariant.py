@@ -22,14 +22,10 @@ import torch
 from torch import nn
 
 from genreg_core.model.gcnn import EdgeConv, knn_indices
-from genreg_core.model.layers import point_mlp
+from genreg_core.model.layers import gather_neighbours, per_cloud, point_mlp
 
-
-def gather_neighbours(values: torch.Tensor, neighbours: torch.Tensor) -> torch.Tensor:
-    """values (B, N, C), neighbours (B, N, k) -> (B, N, k, C)."""
-    B, N, k = neighbours.shape
-    flat = neighbours.reshape(B, N * k, 1).expand(-1, -1, values.shape[-1])
-    return torch.gather(values, 1, flat).reshape(B, N, k, -1)
+__all__ = ["InvariantEncoder", "PPFStem", "gather_neighbours", "invariant_geometry", "local_shape",
+           "point_pair_features"]
 
 
 @torch.no_grad()
@@ -103,16 +99,26 @@ class PPFStem(nn.Module):
         """PPF with its length column in network units."""
         return torch.cat([ppf[..., :1] * self.scale, ppf[..., 1:]], dim=-1)
 
-    def stem(self, points: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-        neighbours = knn_indices(points, self.k)
+    def stem(self, points: torch.Tensor, neighbours: torch.Tensor | None = None
+             ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """neighbours: the kNN graph of `points` (B, N, k), or None to build it."""
+        if neighbours is None:
+            neighbours = knn_indices(points, self.k)
         edge, point, normals = invariant_geometry(points, neighbours)
         point = point_inputs(point, edge, self.point_feature, self.scale)
-        edge = self.scaled(edge)
-        B, N, k, _ = edge.shape
-        h = self.edge_mlp(edge.reshape(B, N * k, 4).transpose(1, 2))  # (B, 64, N k)
-        h = h.reshape(B, -1, N, k).amax(dim=-1)  # (B, 64, N)
+        h = per_cloud(self.edge_max, self.scaled(edge))  # (B, 64, N)
         h = self.point_mlp(torch.cat([h, point.transpose(1, 2)], dim=1)).transpose(1, 2)  # (B, N, 64)
         return h, neighbours, normals
+
+    def edge_max(self, edge: torch.Tensor) -> torch.Tensor:
+        """Edge MLP on the scaled PPF (B, N, k, 4), max over the k neighbours -> (B, 64, N)."""
+        B, N, k, _ = edge.shape
+        edge = edge.reshape(B, N * k, 4).transpose(1, 2)  # (B, 4, N k)
+        if torch.is_grad_enabled():
+            return self.edge_mlp(edge).reshape(B, -1, N, k).amax(dim=-1)
+        # the same values: the final ReLU after the max (they commute) runs on N columns instead of N k
+        h = self.edge_mlp.forward_inplace(edge, last_activation=False)
+        return h.reshape(B, -1, N, k).amax(dim=-1).relu_()
 
 
 class InvariantEncoder(PPFStem):
@@ -124,6 +130,7 @@ class InvariantEncoder(PPFStem):
         super().__init__(k, norm, scale, point_feature)
         self.context = EdgeConv(64, out_channels, k, norm=norm)
 
-    def forward(self, points: torch.Tensor) -> torch.Tensor:
-        h, neighbours, _ = self.stem(points)
+    def forward(self, points: torch.Tensor, neighbours: torch.Tensor | None = None) -> torch.Tensor:
+        """neighbours: the kNN graph of `points` (B, N, k), or None to build it."""
+        h, neighbours, _ = self.stem(points, neighbours)
         return self.context(h, neighbours)

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import itertools
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 
 import torch
 from torch import nn
@@ -25,10 +25,27 @@ class PointMLP(nn.Sequential):
     """
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
+        if not torch.is_grad_enabled():
+            return self.forward_inplace(x)
         for layer in self:
             if isinstance(layer, nn.Conv1d):
                 weight = layer.weight[..., 0].expand(x.shape[0], -1, -1)
                 x = torch.baddbmm(layer.bias[None, :, None], weight, x)
+            else:
+                x = layer(x)
+        return x
+
+    def forward_inplace(self, x: torch.Tensor, last_activation: bool = True) -> torch.Tensor:
+        """The same values without gradient, biases and activations applied in place: each layer's output
+        is written once instead of three times (bias broadcast, product, activation), which matters on the
+        (B, 64, N k) edge features (memory bound). `last_activation` False leaves out the final ReLU (for a
+        max taken next: ReLU commutes with it exactly)."""
+        last = len(self) - 1
+        for i, layer in enumerate(self):
+            if isinstance(layer, nn.Conv1d):
+                x = torch.bmm(layer.weight[..., 0].expand(x.shape[0], -1, -1), x).add_(layer.bias[:, None])
+            elif isinstance(layer, nn.ReLU):
+                x = x.relu_() if last_activation or i < last else x
             else:
                 x = layer(x)
         return x
@@ -57,6 +74,32 @@ def zero_last_layer(module: nn.Module) -> None:
     last = [m for m in module.modules() if isinstance(m, (nn.Linear, nn.Conv1d))][-1]
     nn.init.zeros_(last.weight)
     nn.init.zeros_(last.bias)
+
+
+def gather_neighbours(values: torch.Tensor, neighbours: torch.Tensor) -> torch.Tensor:
+    """Rows of each cloud by index: values (B, N, C), neighbours (B, M, k) indices into N -> (B, M, k, C).
+
+    Without gradient, one `index_select` on the flattened rows (B N, C): about 6x faster than `gather` with
+    an index expanded over C (2 x 512 x 20 x 64 on 2 threads) and the same values. Values that need a
+    gradient go through `gather`, whose backward is the one training has always used.
+    """
+    B, M, k = neighbours.shape
+    if values.requires_grad and torch.is_grad_enabled():
+        flat = neighbours.reshape(B, M * k, 1).expand(-1, -1, values.shape[-1])
+        return torch.gather(values, 1, flat).reshape(B, M, k, -1)
+    offsets = torch.arange(B, device=neighbours.device).mul_(values.shape[1]).view(B, 1, 1)
+    rows = values.reshape(B * values.shape[1], -1).index_select(0, (neighbours + offsets).reshape(-1))
+    return rows.view(B, M, k, -1)
+
+
+def per_cloud(fn: Callable[..., torch.Tensor], *inputs: torch.Tensor) -> torch.Tensor:
+    """fn(*inputs) on batches (B, ...), one cloud at a time when no gradient is recorded: the same values
+    for the per-cloud layers it is used on, with one cloud's temporaries. The large ones (64 x N k floats,
+    5 MB for the pair at N = 512) do not stay in the allocator's reuse, so each costs fresh pages; one
+    cloud at a time the edge MLP takes about half the time (1 CPU thread)."""
+    if torch.is_grad_enabled() or inputs[0].shape[0] == 1:
+        return fn(*inputs)
+    return torch.cat([fn(*(x[i: i + 1] for x in inputs)) for i in range(inputs[0].shape[0])])
 
 
 def centroid(points: torch.Tensor) -> torch.Tensor:
