@@ -449,10 +449,7 @@ class RegisterNode(LifecycleNode):
             pair = slot.take(timeout=0.5)
             if pair is None:
                 continue
-            try:
-                self._process(pair)
-            except Exception as exc:  # noqa: BLE001 (keep the worker alive whatever one pair does)
-                self._fail("internal_error", f"unexpected {type(exc).__name__}: {exc}")
+            self._survive(self._process, pair, "")
 
     def _process(self, pair: Pair) -> None:
         c, registrar, generation = self._config, self._registrar, self._generation
@@ -514,10 +511,14 @@ class RegisterNode(LifecycleNode):
 
     def _publish_loop(self) -> None:
         while (job := self._outbox.get()) is not None:
-            try:
-                self._publish(job)
-            except Exception as exc:  # noqa: BLE001 (keep the publisher alive whatever one result does)
-                self._fail("internal_error", f"unexpected {type(exc).__name__} while publishing: {exc}")
+            self._survive(self._publish, job, " while publishing")
+
+    def _survive(self, step: Any, item: Any, during: str) -> None:
+        """step(item), counting any exception as a failure: the worker and publisher threads never die."""
+        try:
+            step(item)
+        except Exception as exc:  # noqa: BLE001 (keep the thread alive whatever one item does)
+            self._fail("internal_error", f"unexpected {type(exc).__name__}{during}: {exc}")
 
     def _publish(self, job: _Publication) -> None:
         """Encode and publish one result (aligned cloud, transform, pose, tf, generated cloud), then count it."""
