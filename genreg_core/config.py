@@ -174,7 +174,7 @@ class RefineConfig:
     Guard against a wrong global estimate (e.g. a symmetric shape flipped): when the confidence after
     refinement is below `guard_below`, ICP also runs from identity with the wide cut-off
     `guard_distance` and `guard_iterations`; the start that puts more source points within one target
-    spacing of the target wins (`registration.GUARD_SPACINGS`). 0 turns the guard off. Chosen on training-split pairs (MODEL_CARD.md). With an initial guess,
+    spacing of the target wins (`score.TIGHT_SPACINGS`). 0 turns the guard off. Chosen on training-split pairs (MODEL_CARD.md). With an initial guess,
     refinement always runs from the guess too (with the refinement's own settings) and competes the
     same way, so an exact guess is kept.
     """

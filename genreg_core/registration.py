@@ -39,7 +39,7 @@ from genreg_core.score import (
     COVARIANCE_FLOOR_M,
     COVARIANCE_FLOOR_RAD,
     COVARIANCE_INFLATION,
-    FITNESS_SPACINGS,
+    TIGHT_SPACINGS,
     confidence,
     fitness_distance,
     overlap_fitness,
@@ -53,10 +53,6 @@ GUESS_MARGIN = 0.02
 # within one target spacing (at 3 spacings a guess 3.6 deg off already overlaps 0.98 of a small object and
 # refinement could not earn its move; an exact guess on SUN3D gains 0.02 there from GICP's ~1 deg slide).
 REFINED_GUESS_MARGIN = 0.05
-# The guard's ICP result replaces GenReg's when more of the source lies within this many target spacings of
-# the target (not FITNESS_SPACINGS: at 3 spacings a wrong pose that pushes a partial source's unmatched part
-# onto the target can overlap more than the true one; chosen on training pairs, MODEL_CARD "guard").
-GUARD_SPACINGS = 1.0
 
 
 @dataclass
@@ -69,9 +65,10 @@ class RegistrationResult:
     aligned_source: np.ndarray  # (K, 3) float32: the finite source points, input order, in target frame
     source_valid_mask: np.ndarray  # (N,) bool: which input source rows were finite (and kept)
     fitness: float  # share of sampled source points with a target point within 3x the target's spacing
+    tight_fitness: float  # the same share within 1x the target's spacing
     inlier_ratio: float  # fraction of generated correspondences (both directions) consistent with T
     inlier_rmse: float  # RMS distance of the fitness inliers, input units
-    confidence: float  # in [0, 1]: geometric mean of fitness and inlier_ratio
+    confidence: float  # in [0, 1]: geometric mean of fitness, tight_fitness and inlier_ratio (score.confidence)
     start: str = "genreg"  # what the final pose grew from: "genreg", "initial_guess" (the guess, or the
     # guard's ICP from identity without a guess, overlapped the target better) or "fallback" (FPFH + RANSAC)
     covariance: np.ndarray | None = None  # (6, 6) of the final pose, ROS order (x, y, z, rot x, y, z), m, rad
@@ -180,6 +177,11 @@ class Registrar:
         if refining:
             T_n = refine(p.dense_src, p.dense_tgt, T_n, cfg.refine)  # 6. refine GenReg's estimate
         distance = fitness_distance(p.target_index)
+        tight_distance = TIGHT_SPACINGS * p.target_index.spacing
+
+        def tight(T_r: np.ndarray) -> float:  # share of the source within one target spacing
+            return overlap_fitness(p.dense_src, p.target_index, T_r, tight_distance)[0]
+
         fitness, rmse_n = overlap_fitness(p.dense_src, p.target_index, T_n, distance)  # 7. score
         start, rescore = "genreg", False
 
@@ -190,10 +192,10 @@ class Registrar:
                                             est.target_generated[k: k + 1], cfg.pdsac.tau)[0])
 
         def closer(T_a: np.ndarray, T_b: np.ndarray, margin: float = 0.0) -> bool:
-            """Whether T_a puts a larger share (by more than `margin`) of the source within one spacing."""
-            tight = GUARD_SPACINGS * distance / FITNESS_SPACINGS
-            return (overlap_fitness(p.dense_src, p.target_index, T_a, tight)[0]
-                    > overlap_fitness(p.dense_src, p.target_index, T_b, tight)[0] + margin)
+            """Whether T_a puts a larger share (by more than `margin`) of the source within one spacing (not
+            three: there a wrong pose that pushes a partial source's unmatched part onto the target can
+            overlap more than the true one; MODEL_CARD "guard")."""
+            return tight(T_a) > tight(T_b) + margin
 
         if p.init is not None:  # 6. the initial guess (identity in the guess-moved frame), kept or refined
             kept = np.eye(4)
@@ -204,11 +206,11 @@ class Registrar:
             if rival[1] + GUESS_MARGIN > fitness:  # another pose replaces the guess only with a margin
                 (T_n, fitness, rmse_n), start = rival, "initial_guess"
                 inlier_ratio = agreement(T_n)
-        elif refining and confidence(fitness, inlier_ratio) < cfg.refine.guard_below:
+        elif refining and confidence(fitness, tight(T_n), inlier_ratio) < cfg.refine.guard_below:
             guarded = guard_icp(p.dense_src, p.dense_tgt, cfg.refine)  # 6. the guard: wide ICP from identity
             if closer(guarded, T_n):
                 T_n, start, rescore = guarded, "initial_guess", True
-        if cfg.fallback.method != "none" and confidence(fitness, inlier_ratio) < cfg.fallback.below:
+        if cfg.fallback.method != "none" and confidence(fitness, tight(T_n), inlier_ratio) < cfg.fallback.below:
             rescue = fallback(p.dense_src, p.dense_tgt, cfg.fallback)  # 6. opt-in classical fallback
             rescue = refine(p.dense_src, p.dense_tgt, rescue, cfg.refine) if refining else rescue
             if closer(rescue, T_n):
@@ -216,6 +218,7 @@ class Registrar:
         if rescore:  # the guard's or the fallback's pose: scored afresh
             fitness, rmse_n = overlap_fitness(p.dense_src, p.target_index, T_n, distance)
             inlier_ratio = agreement(T_n)
+        tight_fitness = tight(T_n)
         t1 = time.perf_counter()
         T = p.to_input_units(T_n)
         origin_n = (T[:3, 3] - p.offset) / p.scale  # the pose's position, normalised frame
@@ -233,9 +236,10 @@ class Registrar:
             aligned_source=aligned,
             source_valid_mask=p.src_mask,
             fitness=fitness,
+            tight_fitness=tight_fitness,
             inlier_ratio=inlier_ratio,
             inlier_rmse=rmse_n * p.scale,
-            confidence=confidence(fitness, inlier_ratio),
+            confidence=confidence(fitness, tight_fitness, inlier_ratio),
             start=start,
             covariance=covariance,
             timings={"preprocess": p.seconds, "network": shared["network"], "pdsac": shared["pdsac"],

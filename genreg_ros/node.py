@@ -549,7 +549,8 @@ class RegisterNode(LifecycleNode):
             else "published"
         values = {
             "confidence": f"{result.confidence:.4f}", "fitness": f"{result.fitness:.4f}",
-            "inlier_ratio": f"{result.inlier_ratio:.4f}", "inlier_rmse_m": f"{result.inlier_rmse:.6f}",
+            "tight_fitness": f"{result.tight_fitness:.4f}", "inlier_ratio": f"{result.inlier_ratio:.4f}",
+            "inlier_rmse_m": f"{result.inlier_rmse:.6f}",
             "start": result.start, "initial_guess": guess_origin, "published": str(not rejected).lower(),
             "source_frame": source_frame, "target_frame": header.frame_id, "latency_ms": f"{1e3 * latency:.1f}",
         }

@@ -2,59 +2,99 @@
 """register_node benchmarks on 300k-point clouds: node overhead, and a 30 Hz soak.
 
     python scripts/bench_node.py overhead [--points 300000] [--pairs 30]
-    python scripts/bench_node.py soak [--rate 30] [--duration 60] [--points 300000]
+    python scripts/bench_node.py soak [--rate 30] [--duration 60] [--clouds redkitchen] [--json PATH]
 
 overhead: the node runs in this process; pairs are sent one at a time and the node's own per-pair
   timings are read back. Overhead = the two subscription callbacks (checks + pairing) + decoding both
   clouds + transforming and encoding the aligned cloud + publishing, i.e. everything on top of
   preprocessing and registration. Goal: median <= 15 ms.
-soak: the node runs in its own process (as with `ros2 run`) with the shipped Fast DDS profile; this
-  process publishes source/target pairs at --rate for --duration seconds (best effort, like a sensor)
-  and prints the node's counters and resident memory (RSS) every 5 s. The node must keep up or drop by
-  policy (superseded pairs), and RSS must stay flat.
+soak: the node runs in its own process (as with `ros2 run`) with the params file config/genreg.yaml (the
+  scene model `7scenes`, GICP refinement; sync.slop 1 ms as in the replay harness, so a lost cloud is never
+  paired with a neighbour's) and the shipped Fast DDS profile; this process publishes source/target pairs
+  at --rate for --duration seconds (best effort, like a sensor) and prints the node's counters and
+  resident memory (RSS) every 5 s, then one summary block (and --json PATH). Issue 15's acceptance:
+  >= 25 registered pairs per second, p95 latency <= 60 ms, RSS flat.
+  Clouds (--clouds): `redkitchen` (default; any shipped sequence name works): the full-resolution frames
+  --start .. --start + --count - 1 (7-Scenes redkitchen validation frames 800-999, pixel stride 1, x y z
+  rgb as genreg_ros.bag.make_bag writes them, ~272k points, 4.4 MB each); pair k = (target frame k - gap,
+  source frame k), gap 1, looped over for the whole duration. A bag folder (genreg-make-bag output): its
+  clouds, paired the same way. `synthetic`: the same 300k-point box pair (--points) again and again.
+  Every message is serialised before the timed loop; each pair goes out with one fresh stamp (wall
+  clock) on both clouds, target first.
+  Accounting: a sent pair is registered (the node's transform with its stamp arrived) or gets the reason
+  the node counted (superseded, failed.*, dropped.unmatched, ...) or "lost" (not counted by the node):
+  genreg_ros.replay.scoring.assign_reasons, as in genreg-replay.
+  Latency: `node` is the node's own figure per pair (latency_ms of its registration_status message): from
+  the arrival of the pair's later cloud in the node to the result, before the aligned cloud is encoded and
+  the transform published (the figure /diagnostics' latency_ms.median is made of). `end-to-end`: from this
+  process publishing the later cloud to receiving the node's transform for it.
+  Accuracy: each registered pair's transform against the ground truth (RGBDSequence.relative_pose, or the
+  bag's poses): RE (deg) / TE (m) medians and the share with RE < 2 deg and TE < 5 cm; the identity on the
+  same pairs for scale (gap-1 motion at 30 Hz is small).
 
-The model is the shipped scene model `7scenes` unless --checkpoint names another.
+The model is the params file's (`7scenes`) unless --checkpoint names another (overhead: `7scenes`).
 ROS isolation: ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST and a random ROS_DOMAIN_ID unless already set.
 """
 
 from __future__ import annotations
 
 import argparse
+import dataclasses
+import json
+import math
 import os
 import random
-import subprocess
-import sys
-import tempfile
 import threading
 import time
+from collections import Counter
 from pathlib import Path
 
 REPO = Path(__file__).resolve().parent.parent
 os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
 os.environ.setdefault("ROS_DOMAIN_ID", str(random.randint(1, 100)))
 os.environ.setdefault("FASTDDS_DEFAULT_PROFILES_FILE", str(REPO / "config" / "fastdds_large_clouds.xml"))
+os.environ.setdefault("RCUTILS_COLORIZED_OUTPUT", "0")
 
 import numpy as np
 import rclpy
 from diagnostic_msgs.msg import DiagnosticArray
+from geometry_msgs.msg import TransformStamped
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.parameter import Parameter
 from rclpy.qos import QoSProfile, ReliabilityPolicy
+from rclpy.serialization import serialize_message
 from sensor_msgs.msg import PointCloud2
 from std_msgs.msg import Header
 
-from genreg_ros.conversions import split_ns
+from genreg_ros.conversions import msg_to_matrix, split_ns, stamp_ns
 from genreg_ros.pointcloud2 import array_to_msg
+from genreg_ros.replay.harness import (
+    DEFAULT_PARAMS,
+    NodeProcess,
+    ReplayOptions,
+    _counts,
+    _delta,
+    restamp,
+    yaml_param,
+)
+from genreg_ros.replay.scoring import PairResult, assign_reasons, make_pairs, summarize
+
+# Issue 15's acceptance and the success criterion of the accuracy figures.
+GOAL_RATE = 25.0  # registered pairs per second
+GOAL_P95_MS = 60.0
+SUCCESS_RE_DEG, SUCCESS_TE_M = 2.0, 0.05
+SYNTHETIC_DEG, SYNTHETIC_T = 3.0, (0.1, 0.0, 0.0)  # the synthetic pair's motion
 
 
 def make_clouds(n: int) -> tuple[PointCloud2, PointCloud2]:
-    """A source (x, y, z, rgb float32) and the same scene moved by 3 degrees and 10 cm, in two frames."""
+    """A source (x, y, z, rgb float32) and the same scene moved by 3 degrees about z and 10 cm along x
+    (`synthetic_T_gt`), in two frames."""
     rng = np.random.default_rng(0)
     dt = np.dtype({"names": ["x", "y", "z", "rgb"], "formats": ["<f4"] * 4})
     pts = rng.uniform([0, 0, 0], [20, 15, 3], size=(n, 3))
     pts[: n // 3, 2] = 0.0  # a floor
-    c, s = np.cos(np.radians(3)), np.sin(np.radians(3))
-    moved = pts @ np.array([[c, -s, 0], [s, c, 0], [0, 0, 1]]).T + [0.1, 0.0, 0.0]
+    T = synthetic_T_gt()
+    moved = pts @ T[:3, :3].T + T[:3, 3]
     clouds = []
     for frame, p in (("lidar", pts), ("map", moved)):
         rec = np.zeros(n, dt)
@@ -62,6 +102,15 @@ def make_clouds(n: int) -> tuple[PointCloud2, PointCloud2]:
         rec["rgb"] = rng.uniform(size=n)
         clouds.append(array_to_msg(Header(frame_id=frame), rec))
     return clouds[0], clouds[1]
+
+
+def synthetic_T_gt() -> np.ndarray:
+    """T_target_source of the synthetic pair: the target is the source rotated about z, then shifted."""
+    c, s = np.cos(np.radians(SYNTHETIC_DEG)), np.sin(np.radians(SYNTHETIC_DEG))
+    T = np.eye(4)
+    T[:3, :3] = [[c, -s, 0], [s, c, 0], [0, 0, 1]]
+    T[:3, 3] = SYNTHETIC_T
+    return T
 
 
 def set_stamp(msg: PointCloud2, t_ns: int) -> None:
@@ -76,7 +125,7 @@ def med(values) -> float:
 def overhead(args) -> None:
     from genreg_ros.node import RegisterNode
 
-    ckpt = args.checkpoint
+    ckpt = args.checkpoint or "7scenes"
     ns = f"/bench_{os.getpid()}"
     rclpy.init()
     node = RegisterNode(namespace=ns, parameter_overrides=[Parameter("model.checkpoint", value=ckpt)])
@@ -129,6 +178,88 @@ def overhead(args) -> None:
 
 
 # ----------------------------------------------------------------------------------------- soak
+@dataclasses.dataclass(frozen=True)
+class PairTemplate:
+    """One pair of the soak's loop: the serialised clouds to publish (restamped at every send) and the pair's
+    frames and ground truth (a PairResult, copied for every send and scored like a genreg-replay pair)."""
+
+    pair: PairResult
+    source_raw: bytes
+    target_raw: bytes
+
+
+@dataclasses.dataclass(frozen=True)
+class CloudSet:
+    name: str
+    pairs: list[PairTemplate]
+    points: float  # mean points per cloud
+    megabytes: float  # mean serialised size per cloud
+
+
+def _cloud_set(name: str, pairs: list[PairTemplate]) -> CloudSet:
+    if not pairs:
+        raise SystemExit(f"soak: no pairs in {name}")
+    clouds = {id(t.source_raw): t.source_raw for t in pairs} | {id(t.target_raw): t.target_raw for t in pairs}
+    sizes = [len(r) for r in clouds.values()]
+    points = float(np.mean([t.pair.source_points for t in pairs]))
+    return CloudSet(name, pairs, points, float(np.mean(sizes)) / 1e6)
+
+
+def sequence_clouds(name: str, start: int | None, count: int | None, pixel_stride: int, gap: int) -> CloudSet:
+    """Frames of a shipped RGB-D sequence as genreg-make-bag writes them (x, y, z, rgb; camera optical frame),
+    serialised; pairs (target = frame k - gap, source = frame k) with T_gt = RGBDSequence.relative_pose."""
+    from genreg_core.data.rgbd import RGBDSequence
+    from genreg_ros.bag.make_bag import select_frames
+    from genreg_ros.bag.writer import CLOUD_TYPE, DEFAULT_FRAME_ID, TYPESTORE, cloud_message, sequence_frames
+
+    seq = RGBDSequence.open(name)
+    frames = select_frames(seq.frame_indices, start, None, 1, count)
+    if len(frames) <= gap:
+        raise SystemExit(f"soak: {len(frames)} frames of {name} from {start} cannot make gap-{gap} pairs")
+    raw, points, stamps = {}, {}, {}
+    for f in sequence_frames(seq, frames, pixel_stride):
+        msg = cloud_message(f.stamp_ns, DEFAULT_FRAME_ID, f.points, f.colors)
+        raw[f.index] = bytes(TYPESTORE.serialize_cdr(msg, CLOUD_TYPE))
+        points[f.index], stamps[f.index] = len(f.points), f.stamp_ns  # depth_to_points: finite points only
+    pairs = []
+    for k in range(gap, len(frames)):
+        s, t = frames[k], frames[k - gap]
+        pair = PairResult(seq.name, k, s, t, stamps[s], stamps[t], DEFAULT_FRAME_ID, DEFAULT_FRAME_ID, points[s],
+                          seq.relative_pose(s, t))
+        pairs.append(PairTemplate(pair, raw[s], raw[t]))
+    return _cloud_set(f"{seq.name} frames {frames[0]}-{frames[-1]} (pixel stride {pixel_stride})", pairs)
+
+
+def bag_clouds(path: Path, gap: int) -> CloudSet:
+    """The clouds of a bag (genreg-make-bag), paired as genreg-replay pairs them (scoring.make_pairs)."""
+    from genreg_ros.bag.reader import read_bag
+
+    bag = read_bag(path)  # decoded once for the finite-point counts, then dropped
+    pairs = [PairTemplate(p, bag.clouds[p.k].raw, bag.clouds[p.k - gap].raw) for p in make_pairs(bag, gap)
+             if not p.malformed]
+    frames = bag.frame_numbers
+    return _cloud_set(f"bag {path} frames {frames[0]}-{frames[-1]}", pairs)
+
+
+def synthetic_clouds(n: int) -> CloudSet:
+    src, tgt = make_clouds(n)
+    pair = PairResult("synthetic", 1, 1, 0, 0, 0, src.header.frame_id, tgt.header.frame_id, n, synthetic_T_gt())
+    return _cloud_set(f"synthetic {n}-point boxes", [PairTemplate(pair, serialize_message(src), serialize_message(tgt))])
+
+
+def load_clouds(args) -> CloudSet:
+    from genreg_core.data.rgbd import SEQUENCES
+
+    if args.clouds == "synthetic":
+        return synthetic_clouds(args.points)
+    if args.clouds in SEQUENCES:
+        return sequence_clouds(args.clouds, args.start, args.count, args.pixel_stride, args.gap)
+    if Path(args.clouds).is_dir():
+        return bag_clouds(Path(args.clouds), args.gap)
+    raise SystemExit(f"soak: --clouds must be synthetic, a sequence ({', '.join(sorted(SEQUENCES))}) or a bag "
+                     f"folder, got {args.clouds!r}")
+
+
 def rss_mb(pid: int) -> float:
     for line in Path(f"/proc/{pid}/status").read_text().splitlines():
         if line.startswith("VmRSS:"):
@@ -136,98 +267,378 @@ def rss_mb(pid: int) -> float:
     return float("nan")
 
 
-def soak(args) -> None:
-    ckpt = args.checkpoint
-    ns = f"/soak_{os.getpid()}"
-    cmd = [sys.executable, "-m", "genreg_ros.node", "--ros-args", "-r", f"__ns:={ns}",
-           "-p", f"model.checkpoint:={ckpt}", "-p", "diagnostics.period:=1.0", *args.node_args]
-    node_log = open(Path(tempfile.gettempdir()) / f"genreg_soak_{os.getpid()}.log", "w")  # noqa: SIM115
-    proc = subprocess.Popen(cmd, stdout=node_log, stderr=subprocess.STDOUT)
-    rclpy.init()
-    helper = rclpy.create_node("soak_publisher", namespace=ns)
-    qos = QoSProfile(depth=2, reliability=ReliabilityPolicy.BEST_EFFORT)
-    pub_s = helper.create_publisher(PointCloud2, "source_cloud", qos)
-    pub_t = helper.create_publisher(PointCloud2, "target_cloud", qos)
-    diag: dict[str, str] = {}
+def cpu_seconds(pid: int) -> float:
+    """User + system CPU time of a process (all its threads), s."""
+    fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
 
-    def on_diag(msg: DiagnosticArray) -> None:
+
+def percentiles(values) -> dict[str, float]:
+    v = np.asarray([x for x in values if x is not None and math.isfinite(x)], dtype=np.float64)
+    if v.size == 0:
+        return {"n": 0, "p50": math.nan, "p95": math.nan, "max": math.nan}
+    return {"n": int(v.size), "p50": float(np.median(v)), "p95": float(np.percentile(v, 95)), "max": float(v.max())}
+
+
+def parse_node_args(items: list[str]) -> dict[str, str]:
+    out = {}
+    for item in items:
+        key, sep, value = item.partition(":=")
+        if not sep or not key:
+            raise SystemExit(f"soak: --node-args takes KEY:=VALUE items, got {item!r}")
+        out[key] = value
+    return out
+
+
+@dataclasses.dataclass(frozen=True)
+class _Output:
+    received: float  # time.monotonic() of arrival here
+    parent: str
+    child: str
+    T: np.ndarray
+
+
+class SoakClient:
+    """This process's rclpy side: best-effort cloud publishers (like a sensor driver) and subscriptions to
+    the node's `transform`, `registration_status` (both keyed by the source stamp) and /diagnostics."""
+
+    def __init__(self, ns: str, fqn: str, output_reliability: str) -> None:
+        rclpy.init()
+        self.fqn = fqn
+        self.node = rclpy.create_node("soak_publisher", namespace=ns)
+        qos = QoSProfile(depth=2, reliability=ReliabilityPolicy.BEST_EFFORT)
+        self.pub_s = self.node.create_publisher(PointCloud2, "source_cloud", qos)
+        self.pub_t = self.node.create_publisher(PointCloud2, "target_cloud", qos)
+        out_qos = QoSProfile(depth=50, reliability=ReliabilityPolicy[output_reliability.upper()])
+        self.lock = threading.Lock()
+        self.transforms: dict[int, _Output] = {}
+        self.status: dict[int, dict[str, str]] = {}
+        self.diag: dict[str, str] = {}
+        self.diag_log: list[tuple[float, dict[str, str]]] = []
+        self.sub_tf = self.node.create_subscription(TransformStamped, "transform", self._on_transform, out_qos)
+        self.node.create_subscription(DiagnosticArray, "registration_status", self._on_status, out_qos)
+        self.node.create_subscription(DiagnosticArray, "/diagnostics", self._on_diag, 10)
+        self.executor = SingleThreadedExecutor()
+        self.executor.add_node(self.node)
+        self.spinner = threading.Thread(target=self.executor.spin, daemon=True)
+        self.spinner.start()
+
+    def _on_transform(self, msg: TransformStamped) -> None:
+        out = _Output(time.monotonic(), msg.header.frame_id, msg.child_frame_id, msg_to_matrix(msg))
+        with self.lock:
+            self.transforms[stamp_ns(msg.header)] = out
+
+    def _on_status(self, msg: DiagnosticArray) -> None:
         for s in msg.status:
-            if s.hardware_id == f"{ns}/register_node":
-                diag.clear()
-                diag.update({kv.key: kv.value for kv in s.values})
+            if s.hardware_id == self.fqn:
+                with self.lock:
+                    self.status[stamp_ns(msg.header)] = {kv.key: kv.value for kv in s.values}
 
-    helper.create_subscription(DiagnosticArray, "/diagnostics", on_diag, 10)
-    executor = SingleThreadedExecutor()
-    executor.add_node(helper)
-    spinner = threading.Thread(target=executor.spin, daemon=True)
-    spinner.start()
-    src, tgt = make_clouds(args.points)
-    deadline = time.monotonic() + 60
-    while not diag and time.monotonic() < deadline:
-        time.sleep(0.1)
-    if not diag:
-        raise SystemExit(f"node did not start; see {node_log.name}")
-    print(f"soak: {args.rate:g} Hz pairs of {args.points}-point clouds ({len(src.data) / 1e6:.1f} MB each) for "
-          f"{args.duration:g} s; node pid {proc.pid}, QoS best effort, shipped Fast DDS profile")
-    print(f"{'t/s':>5s} {'sent':>5s} {'recv':>5s} {'paired':>6s} {'regist':>6s} {'supers':>6s} {'other':>5s} "
-          f"{'fail':>4s} {'lat ms':>7s} {'RSS MB':>7s}")
+    def _on_diag(self, msg: DiagnosticArray) -> None:
+        now = time.monotonic()
+        for s in msg.status:
+            if s.hardware_id == self.fqn:
+                values = {kv.key: kv.value for kv in s.values}
+                with self.lock:
+                    self.diag = values
+                    self.diag_log.append((now, values))
+
+    def matched(self) -> bool:
+        return (bool(self.diag) and self.pub_s.get_subscription_count() > 0
+                and self.pub_t.get_subscription_count() > 0 and self.sub_tf.get_publisher_count() > 0)
+
+    def counts(self, newer_than: float = -math.inf, timeout: float = 0.0) -> dict[str, int] | None:
+        """The node's counters (harness._counts) from the first /diagnostics received after `newer_than`."""
+        deadline = time.monotonic() + timeout
+        while True:
+            with self.lock:
+                fresh = [d for t, d in self.diag_log if t > newer_than]
+            if fresh:
+                return _counts(fresh[0] if newer_than > -math.inf else fresh[-1])
+            if time.monotonic() >= deadline:
+                return None
+            time.sleep(0.05)
+
+    def close(self) -> None:
+        self.executor.shutdown()
+        self.spinner.join(timeout=5)
+        self.node.destroy_node()
+        rclpy.try_shutdown()
+
+
+def soak(args) -> None:
+    ns = f"/soak_{os.getpid()}"
+    fqn = f"{ns}/register_node"
+    params_file = Path(args.params_file)
+    node_params = {"diagnostics.period": "1.0", **parse_node_args(args.node_args)}
+    options = ReplayOptions(namespace=ns, params_file=params_file, checkpoint=args.checkpoint, node_params=node_params)
+    node = NodeProcess(options, Path(args.node_log or f"/tmp/genreg_soak_{os.getpid()}.log"))
+    client = None
+    try:
+        t_load = time.monotonic()
+        clouds = load_clouds(args)  # while the node starts
+        t_load = time.monotonic() - t_load
+        client = SoakClient(ns, fqn, node_params.get("qos.publisher_reliability") or yaml_param(
+            params_file, "qos.publisher_reliability", "reliable"))
+        deadline = time.monotonic() + 90
+        while not client.matched():
+            if not node.alive():
+                raise SystemExit(f"soak: the node exited (code {node.proc.returncode}): {node.error_line()}")
+            if time.monotonic() > deadline:
+                raise SystemExit(f"soak: node not reachable within 90 s; see {node.log_path}")
+            time.sleep(0.1)
+        summary = run_soak(args, node, client, clouds, node_params, t_load)
+    finally:
+        if client is not None:
+            client.close()
+        code = node.stop(timeout=30)
+    print(f"node exit code on SIGINT: {code} (log: {node.log_path})")
+    if args.json:
+        summary["node_exit_code"] = code
+        Path(args.json).parent.mkdir(parents=True, exist_ok=True)
+        Path(args.json).write_text(json.dumps(summary, indent=1, default=float) + "\n")
+        print(f"summary written to {args.json}")
+
+
+def run_soak(args, node: NodeProcess, client: SoakClient, clouds: CloudSet, node_params: dict[str, str],
+             t_load: float) -> dict:
+    pid, params_file = node.proc.pid, Path(args.params_file)
+    model = args.checkpoint or yaml_param(params_file, "model.checkpoint", "?")
+    refine = node_params.get("refine.method") or yaml_param(params_file, "refine.method", "?")
+    print(f"soak: {args.rate:g} Hz pairs for {args.duration:g} s: {clouds.name}, {len(clouds.pairs)} pairs (gap "
+          f"{args.gap}) looped, {clouds.points:.0f} points per source cloud ({clouds.megabytes:.1f} MB), serialised "
+          f"in {t_load:.1f} s; node pid {pid}: {params_file.name} (model {model}, refine {refine}) "
+          f"+ {' '.join(f'{k}:={v}' for k, v in node_params.items())}, sync.slop 0.001 (relay); QoS best effort, "
+          f"shipped Fast DDS profile; ROS_DOMAIN_ID {os.environ.get('ROS_DOMAIN_ID')}", flush=True)
+    print(f"{'t/s':>5s} {'sent':>5s} {'recv':>5s} {'paired':>6s} {'regist':>6s} {'reg/s':>5s} {'supers':>6s} "
+          f"{'other':>5s} {'fail':>4s} {'lat ms':>7s} {'RSS MB':>7s}")
+    before = client.counts() or {}
     period = 1.0 / args.rate
-    t_start = time.monotonic()
-    next_tick, next_report, sent, rss = t_start, t_start, 0, []
+    sent: list[PairResult] = []
+    samples: list[dict] = []  # one per report: time, counters, RSS, CPU
 
     def report(t: float) -> None:
-        d = dict(diag)
+        d = dict(client.diag)
         other = int(d.get("dropped", 0)) - int(d.get("dropped.superseded", 0))
-        rss.append(rss_mb(proc.pid))
-        print(f"{t:5.0f} {sent:5d} {d.get('received.source', '?'):>5s} {d.get('paired', '?'):>6s} "
-              f"{d.get('registered', '?'):>6s} {d.get('dropped.superseded', '0'):>6s} {other:5d} "
-              f"{d.get('failed', '?'):>4s} {d.get('latency_ms.median', '?'):>7s} {rss[-1]:7.1f}", flush=True)
+        reg = int(d.get("registered", 0))
+        rate = (reg - samples[-1]["registered"]) / max(t - samples[-1]["t"], 1e-9) if samples else 0.0
+        samples.append({"t": round(t, 2), "sent": len(sent), "received_source": int(d.get("received.source", 0)),
+                        "paired": int(d.get("paired", 0)), "registered": reg,
+                        "superseded": int(d.get("dropped.superseded", 0)), "other_drops": other,
+                        "failed": int(d.get("failed", 0)), "latency_ms_median": float(d.get("latency_ms.median", "nan")),
+                        "rss_mb": rss_mb(pid), "node_cpu_s": cpu_seconds(pid), "own_cpu_s": time.process_time()})
+        s = samples[-1]
+        print(f"{t:5.0f} {s['sent']:5d} {s['received_source']:5d} {s['paired']:6d} {reg:6d} {rate:5.1f} "
+              f"{s['superseded']:6d} {other:5d} {s['failed']:4d} {d.get('latency_ms.median', '?'):>7s} "
+              f"{s['rss_mb']:7.1f}", flush=True)
 
+    t_start = time.monotonic()
+    next_tick, next_report = t_start, t_start
     while (now := time.monotonic()) - t_start < args.duration:
         if now >= next_report:
             report(now - t_start)
             next_report += 5.0
         if now >= next_tick:
+            template = clouds.pairs[len(sent) % len(clouds.pairs)]
             stamp = time.time_ns()
-            set_stamp(src, stamp)
-            set_stamp(tgt, stamp)
-            pub_s.publish(src)
-            pub_t.publish(tgt)
-            sent += 1
+            target, source = restamp(template.target_raw, stamp), restamp(template.source_raw, stamp)
+            client.pub_t.publish(target)
+            published = time.monotonic()  # the later cloud goes out now
+            client.pub_s.publish(source)
+            sent.append(dataclasses.replace(template.pair, out_stamp=stamp, published=published, header_problems=[]))
+            del target, source
             next_tick += period
             if now - next_tick > 1.0:  # this process fell behind: do not burst
                 next_tick = now + period
         time.sleep(max(0.0, min(next_tick, next_report) - time.monotonic()))
-    time.sleep(2.0)  # let the last diagnostics arrive
+    t_end = time.monotonic()
+    at_end = {"t": t_end - t_start, "node_cpu_s": cpu_seconds(pid), "own_cpu_s": time.process_time(),
+              "rss_mb": rss_mb(pid)}  # the end of the input (the report below comes after settling)
+    settle(client, node, sent, timeout=30.0)
+    after = client.counts(newer_than=time.monotonic(), timeout=3.0) or client.counts() or {}
     report(time.monotonic() - t_start)
-    d = dict(diag)
-    paired, registered = int(d.get("paired", 0)), int(d.get("registered", 0))
-    superseded = int(d.get("dropped.superseded", 0))
-    print(f"summary: sent {sent} pairs ({sent / args.duration:.1f} Hz), node received {d.get('received.source')} "
-          f"sources / {d.get('received.target')} targets, paired {paired}, registered {registered} "
-          f"({registered / args.duration:.1f} Hz), superseded {superseded}, other drops "
-          f"{int(d.get('dropped', 0)) - superseded}, failed {d.get('failed')}; "
-          f"every pair accounted: {registered + superseded + int(d.get('failed', 0)) >= paired - 1}")
-    print(f"  latency median {d.get('latency_ms.median')} ms, node overhead median {d.get('overhead_ms.median')} ms")
-    print(f"  RSS: first {rss[0]:.1f} MB, after 10 s {rss[min(2, len(rss) - 1)]:.1f} MB, last {rss[-1]:.1f} MB, "
-          f"max {max(rss):.1f} MB; growth after warm-up {rss[-1] - rss[min(2, len(rss) - 1)]:+.1f} MB")
-    executor.shutdown()
-    spinner.join(timeout=5)
-    helper.destroy_node()
-    rclpy.shutdown()
-    proc.send_signal(2)
-    print(f"node exit code on SIGINT: {proc.wait(timeout=30)} (log: {node_log.name})")
+    return summarize_soak(args, client, clouds, sent, before, after, samples, at_end, t_start, t_end, model)
+
+
+def settle(client: SoakClient, node: NodeProcess, sent: list[PairResult], timeout: float) -> None:
+    """Until every sent pair has a transform, or the node's counters stay unchanged for 2.5 s (the last
+    registration is done), or the timeout."""
+    start = time.monotonic()
+    seen, seen_at = None, start
+    while (now := time.monotonic()) - start < timeout:
+        if not node.alive():
+            raise SystemExit(f"soak: the node exited (code {node.proc.returncode}): {node.error_line()}")
+        with client.lock:
+            if all(p.out_stamp in client.transforms for p in sent):
+                return
+        counts = client.counts()
+        if counts != seen:
+            seen, seen_at = counts, now
+        elif now - seen_at >= 2.5:
+            return
+        time.sleep(0.2)
+
+
+def summarize_soak(args, client: SoakClient, clouds: CloudSet, sent: list[PairResult], before: dict[str, int],
+                   after: dict[str, int], samples: list[dict], at_end: dict[str, float], t_start: float,
+                   t_end: float, model: str) -> dict:
+    """Match the node's outputs to the sent pairs by stamp, account for every pair, print the summary block."""
+    deltas = _delta(after, before)
+    with client.lock:
+        transforms, status = dict(client.transforms), dict(client.status)
+        diag_log = list(client.diag_log)
+    stamps = {p.out_stamp for p in sent}
+    for p in sent:
+        tf = transforms.get(p.out_stamp)
+        if tf is None:
+            continue
+        p.T_est, p.received = tf.T, tf.received
+        if tf.parent != p.target_frame_id or tf.child != p.source_frame_id:
+            p.header_problems.append(f"transform {tf.parent!r} <- {tf.child!r}")
+    assign_reasons(sent, deltas)
+    s = summarize(sent, deltas, [])
+    reg = [p for p in sent if p.registered]
+    n, duration, warmup = len(sent), args.duration, min(args.warmup, args.duration)
+    steady = [p for p in reg if t_start + warmup <= p.received <= t_end]
+    node_latency = percentiles([float(status[p.out_stamp]["latency_ms"]) for p in reg if p.out_stamp in status])
+    e2e = percentiles([1e3 * p.latency for p in reg])
+    errors = [p.errors(p.T_est) for p in reg]
+    identity = [p.errors(np.eye(4)) for p in reg]
+
+    def success(errs) -> float:
+        return float(np.mean([re < SUCCESS_RE_DEG and te < SUCCESS_TE_M for re, te in errs])) if errs else math.nan
+
+    warm = next((x for x in samples if x["t"] >= warmup - 0.5), samples[-1])
+    steady_rss = [x for x in samples if warm["t"] <= x["t"] <= at_end["t"]] + [at_end]
+    slope = float(np.polyfit([x["t"] for x in steady_rss], [x["rss_mb"] for x in steady_rss], 1)[0]) \
+        if len(steady_rss) >= 3 else math.nan
+    rss = {"first": samples[0]["rss_mb"], "warmup_end": warm["rss_mb"], "warmup_end_t": warm["t"],
+           "end": at_end["rss_mb"], "after_settling": samples[-1]["rss_mb"],
+           "max": max(x["rss_mb"] for x in [*samples, at_end]),
+           "growth_after_warmup": at_end["rss_mb"] - warm["rss_mb"], "slope_mb_per_min": 60 * slope}
+    span = max(at_end["t"] - warm["t"], 1e-9)  # from the warm-up end to the last publication
+    cpu = {"node": (at_end["node_cpu_s"] - warm["node_cpu_s"]) / span,
+           "publisher": (at_end["own_cpu_s"] - warm["own_cpu_s"]) / span}
+    steady_diag = [d for t, d in diag_log if t_start + warmup <= t <= t_end]
+    timing_keys = ("decode_ms", "preprocess_ms", "register_ms", "encode_ms", "publish_ms", "points_registered",
+                   "points_target", "confidence", "initial_guess_won")
+    timings = {k: med([float(d[f"last.{k}"]) for d in steady_diag if f"last.{k}" in d]) for k in timing_keys}
+    for k in ("callback_ms.median", "overhead_ms.median"):
+        timings[k] = med([float(d[k]) for d in steady_diag if k in d])
+    starts = Counter(status[p.out_stamp].get("start", "?") for p in reg if p.out_stamp in status)
+    reasons = s["reasons"]
+    superseded = sum(v for k, v in reasons.items() if k == "node dropped.superseded")
+    lost = s["lost"]
+    other = n - len(reg) - superseded - lost
+    node_paired = after.get("paired", 0) - before.get("paired", 0)
+    node_failed = sum(v for k, v in deltas.items() if k.startswith("failed."))
+    node_superseded = deltas.get("dropped.superseded", 0)
+    node_registered = deltas.get("registered", 0)
+    node_reset = deltas.get("dropped.reset", 0)
+    node_ok = node_paired == node_registered + node_failed + node_superseded + node_reset
+    summary = {
+        "clouds": clouds.name, "pairs_in_loop": len(clouds.pairs), "gap": args.gap,
+        "points_per_cloud": clouds.points, "mb_per_cloud": clouds.megabytes,
+        "params_file": str(args.params_file), "model": model,
+        "node_params": {"sync.slop": "0.001", "diagnostics.period": "1.0", **parse_node_args(args.node_args)},
+        "ros_domain_id": os.environ.get("ROS_DOMAIN_ID"),
+        "rate_hz": args.rate, "duration_s": duration, "warmup_s": warmup,
+        "sent": n, "sent_rate_hz": n / duration,
+        "node_received": {"source": deltas.get("received.source", 0), "target": deltas.get("received.target", 0)},
+        "node_paired": node_paired, "node_registered": node_registered,
+        "registered": len(reg), "registered_per_s": len(reg) / duration,
+        "registered_per_s_after_warmup": len(steady) / max(duration - warmup, 1e-9),
+        "superseded": superseded, "other_not_registered": other, "lost": lost,
+        "not_registered_by_reason": reasons,
+        "node_drop_and_fail_counts": {k: v for k, v in sorted(deltas.items()) if k.startswith(("dropped.", "failed."))},
+        "accounted": len(reg) + superseded + other + lost == n and lost == 0,
+        "node_accounted": node_ok,
+        "outputs_not_matching_a_sent_pair": sum(1 for st in transforms if st not in stamps),
+        "header_problems": s["header_problems"],
+        "latency_ms": {"node": node_latency, "end_to_end": e2e},
+        "rss_mb": rss, "cpu_cores_after_warmup": cpu,
+        "accuracy": {"pairs": len(reg), "re_deg_median": s["re"]["median"], "te_m_median": s["te"]["median"],
+                     "re_deg_p95": s["re"]["p95"], "te_m_p95": s["te"]["p95"], "success_share": success(errors),
+                     "identity_re_deg_median": s["identity_re"]["median"],
+                     "identity_te_m_median": s["identity_te"]["median"], "identity_success_share": success(identity),
+                     "criterion": f"RE < {SUCCESS_RE_DEG:g} deg and TE < {SUCCESS_TE_M:g} m"},
+        "node_timings_median_of_1hz_samples": timings, "winning_start": dict(starts),
+        "table": samples,
+    }
+    summary["acceptance"] = {
+        "rate": summary["registered_per_s"] >= GOAL_RATE, "p95": node_latency["p95"] <= GOAL_P95_MS,
+        "rss_flat": rss["growth_after_warmup"] <= args.rss_tolerance,  # a drop is no leak
+    }
+    print_summary(summary, args)
+    return summary
+
+
+def print_summary(m: dict, args) -> None:
+    def lat(x: dict) -> str:
+        return f"{x['p50']:.0f} / {x['p95']:.0f} / {x['max']:.0f} ms (n {x['n']})"
+
+    def ok(flag: bool) -> str:
+        return "OK" if flag else "NOT MET"
+
+    a, r, t, acc = m["acceptance"], m["rss_mb"], m["node_timings_median_of_1hz_samples"], m["accuracy"]
+    reasons = ", ".join(f"{k} {v}" for k, v in m["not_registered_by_reason"].items()) or "none"
+    counts = ", ".join(f"{k} {v}" for k, v in m["node_drop_and_fail_counts"].items()) or "none"
+    lines: list[str] = []
+    add = lines.append
+    add(f"summary: {m['clouds']}, {m['pairs_in_loop']} pairs (gap {m['gap']}) looped; model {m['model']}, "
+        f"{Path(m['params_file']).name}")
+    add(f"  input        {args.rate:g} Hz for {m['duration_s']:g} s: {m['sent']} pairs sent ({m['sent_rate_hz']:.1f} Hz, "
+        f"{m['points_per_cloud']:.0f} points, {m['mb_per_cloud']:.1f} MB per cloud); node received "
+        f"{m['node_received']['source']} sources / {m['node_received']['target']} targets, paired {m['node_paired']}")
+    add(f"  registered   {m['registered']} pairs = {m['registered_per_s']:.1f} per second "
+        f"({m['registered_per_s_after_warmup']:.1f} after the {m['warmup_s']:g} s warm-up); goal >= {GOAL_RATE:g}")
+    add(f"  not regist.  {m['sent'] - m['registered']}: {reasons}")
+    add(f"  accounted    registered {m['registered']} + superseded {m['superseded']} + other {m['other_not_registered']} "
+        f"+ lost {m['lost']} = {m['registered'] + m['superseded'] + m['other_not_registered'] + m['lost']} of "
+        f"{m['sent']} sent: {'yes' if m['accounted'] else 'NO'}; node counts: {counts}")
+    add(f"  latency      node p50 / p95 / max {lat(m['latency_ms']['node'])} (goal p95 <= {GOAL_P95_MS:g}); "
+        f"end-to-end {lat(m['latency_ms']['end_to_end'])}")
+    add(f"  RSS          warm-up end ({r['warmup_end_t']:.0f} s) {r['warmup_end']:.1f} MB, end {r['end']:.1f} MB, "
+        f"growth {r['growth_after_warmup']:+.1f} MB, fit {r['slope_mb_per_min']:+.1f} MB/min (max {r['max']:.1f} MB, "
+        f"first {r['first']:.1f} MB, after settling {r['after_settling']:.1f} MB)")
+    add(f"  accuracy     {acc['pairs']} registered pairs: RE median {acc['re_deg_median']:.3f} deg, TE median "
+        f"{1e3 * acc['te_m_median']:.1f} mm, success {100 * acc['success_share']:.1f} % ({acc['criterion']}); "
+        f"identity on the same pairs: {acc['identity_re_deg_median']:.3f} deg, {1e3 * acc['identity_te_m_median']:.1f} "
+        f"mm, {100 * acc['identity_success_share']:.1f} %")
+    add(f"  node time    per pair (median of 1 Hz samples after warm-up): decode {t['decode_ms']:.1f}, preprocess "
+        f"{t['preprocess_ms']:.1f}, register {t['register_ms']:.1f}, encode {t['encode_ms']:.1f}, publish "
+        f"{t['publish_ms']:.1f} ms; callback {t['callback_ms.median']:.2f} ms; {t['points_registered']:.0f} source / "
+        f"{t['points_target']:.0f} target points registered; winning start "
+        f"{', '.join(f'{k} {v}' for k, v in m['winning_start'].items()) or '-'}")
+    add(f"  CPU          node {m['cpu_cores_after_warmup']['node']:.2f} cores, publisher (this process) "
+        f"{m['cpu_cores_after_warmup']['publisher']:.2f} cores (after warm-up)")
+    add(f"  acceptance   rate {ok(a['rate'])}, p95 {ok(a['p95'])}, RSS flat (growth <= {args.rss_tolerance:g} MB) "
+        f"{ok(a['rss_flat'])}")
+    print("\n".join(lines), flush=True)
 
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("mode", choices=("overhead", "soak"))
-    ap.add_argument("--points", type=int, default=300_000)
+    ap.add_argument("--points", type=int, default=300_000, help="overhead, soak --clouds synthetic: points per cloud")
     ap.add_argument("--pairs", type=int, default=30, help="overhead: pairs measured")
     ap.add_argument("--rate", type=float, default=30.0, help="soak: pairs per second")
     ap.add_argument("--duration", type=float, default=60.0, help="soak: seconds")
-    ap.add_argument("--checkpoint", default="7scenes", help="model checkpoint: a shipped name or a .pt path")
-    ap.add_argument("--node-args", nargs="*", default=[], help="soak: extra --ros-args for the node")
+    ap.add_argument("--warmup", type=float, default=10.0, help="soak: seconds before RSS and rates count as steady")
+    ap.add_argument("--clouds", default="redkitchen",
+                    help="soak: a shipped sequence (redkitchen), a bag folder (genreg-make-bag) or synthetic")
+    ap.add_argument("--start", type=int, default=800, help="soak, sequence: first frame (redkitchen validation: 800)")
+    ap.add_argument("--count", type=int, default=200, help="soak, sequence: frames (800-999)")
+    ap.add_argument("--pixel-stride", type=int, default=1, help="soak, sequence: back-project every n-th pixel")
+    ap.add_argument("--gap", type=int, default=1, help="soak: target = frame k - gap, source = frame k")
+    ap.add_argument("--params-file", default=str(DEFAULT_PARAMS), help="soak: the node's params file")
+    ap.add_argument("--checkpoint", default=None,
+                    help="model checkpoint: a shipped name or a .pt path (default: the params file's; overhead 7scenes)")
+    ap.add_argument("--node-args", nargs="*", default=[], metavar="KEY:=VALUE",
+                    help="soak: more node parameters, e.g. refine.method:=none")
+    ap.add_argument("--rss-tolerance", type=float, default=30.0, help="soak: RSS growth after warm-up deemed flat, MB")
+    ap.add_argument("--node-log", default=None, help="soak: the node's log file (default /tmp/genreg_soak_<pid>.log)")
+    ap.add_argument("--json", default=None, metavar="PATH", help="soak: also write the summary as JSON")
     args = ap.parse_args()
     overhead(args) if args.mode == "overhead" else soak(args)
 

@@ -15,27 +15,14 @@ from __future__ import annotations
 import argparse
 
 import numpy as np
-from scipy.spatial.transform import Rotation
 from tqdm import tqdm
 
+from genreg_core.bench.report import roc_auc
 from genreg_core.config import RefineConfig, RegistrationConfig
 from genreg_core.data import RGBDSequence
-from genreg_core.geometry import apply_transform, make_transform
+from genreg_core.geometry import apply_transform, kidnap_motion
 from genreg_core.metrics import transform_errors
 from genreg_core.registration import Registrar
-
-
-def kidnap(points: np.ndarray, rng: np.random.Generator, max_deg: float = 45.0, max_m: float = 0.5) -> np.ndarray:
-    """A random rigid motion about the cloud's centroid: angle U[0, max_deg], translation U[0, max_m]."""
-    axis, direction = rng.normal(size=3), rng.normal(size=3)
-    R = Rotation.from_rotvec(np.radians(rng.uniform(0, max_deg)) * axis / np.linalg.norm(axis)).as_matrix()
-    c = points.mean(axis=0)
-    return make_transform(R, c - R @ c + rng.uniform(0, max_m) * direction / np.linalg.norm(direction))
-
-
-def roc_auc(scores: np.ndarray, labels: np.ndarray) -> float:
-    pos, neg = scores[labels], scores[~labels]
-    return float(np.mean([(p > neg).mean() + 0.5 * (p == neg).mean() for p in pos])) if len(pos) and len(neg) else float("nan")
 
 
 def main() -> int:
@@ -53,13 +40,13 @@ def main() -> int:
         gap = int(rng.integers(10, 61))
         i = int(rng.integers(0, 800 - gap))
         src, tgt = seq.points(i + gap, stride=args.stride), seq.points(i, stride=args.stride)
-        K = kidnap(src, rng)
+        K = kidnap_motion(rng, src.mean(axis=0))
         result = reg.register(apply_transform(K, src), tgt)
         re, te = transform_errors(result.transformation, seq.relative_pose(i + gap, i) @ np.linalg.inv(K))
         conf.append(result.confidence)
         ok.append(re < 2.0 and te < 0.05)
     conf, ok = np.array(conf), np.array(ok)
-    print(f"{args.method}, {len(ok)} training pairs, success {ok.mean():.0%}, confidence ROC AUC {roc_auc(conf, ok):.3f}")
+    print(f"{args.method}, {len(ok)} training pairs, success {ok.mean():.0%}, confidence ROC AUC {roc_auc(conf, ok) or float('nan'):.3f}")
     print("| min_confidence | successes kept | failures rejected |")
     print("|---|---|---|")
     for t in np.round(np.arange(0.0, 0.65, 0.05), 2):

@@ -68,7 +68,8 @@ def genreg_method(registrar: Registrar) -> Method:
         result = registrar.register(source, target)
         seconds = time.perf_counter() - t0
         extra = {
-            "confidence": result.confidence, "fitness": result.fitness, "inlier_ratio": result.inlier_ratio,
+            "confidence": result.confidence, "fitness": result.fitness,
+            "tight_fitness": result.tight_fitness, "inlier_ratio": result.inlier_ratio,
             "timings": {k: float(v) for k, v in result.timings.items()},
         }
         return MethodOutput(result.transformation, seconds, extra)
