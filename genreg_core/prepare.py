@@ -24,6 +24,7 @@ from dataclasses import dataclass, replace
 from functools import cached_property
 
 import numpy as np
+import open3d as o3d
 import torch
 
 from genreg_core.config import (
@@ -34,6 +35,7 @@ from genreg_core.config import (
 )
 from genreg_core.errors import InvalidPointCloudError, NonFinitePointsError, TooFewPointsError
 from genreg_core.geometry import apply_transform, denormalize_transform
+from genreg_core.refine import o3d_cloud
 from genreg_core.score import TargetIndex, sorted_distinct
 
 ROBUST_QUANTILE = 0.001  # robust_extent ignores this share of the points on each side of each axis
@@ -198,6 +200,15 @@ class PreparedPair:
     def target_index(self) -> TargetIndex:
         """The nearest-neighbour index of `dense_tgt` the scores share (built on first use, once per pair)."""
         return TargetIndex(self.dense_tgt)
+
+    @cached_property
+    def plane_target(self) -> o3d.geometry.PointCloud:
+        """`dense_tgt` as an Open3D cloud carrying `target_index`'s normals (the PCA of `score.NORMAL_NEIGHBOURS`
+        neighbours, as Open3D's KNN normals): point-to-plane ICP's target. Its normals are computed once per
+        pair and shared by every ICP of the pair (refinement, guess, guard) and by the covariance."""
+        cloud = o3d_cloud(self.dense_tgt)
+        cloud.normals = o3d.utility.Vector3dVector(self.target_index.normals(np.arange(len(self.dense_tgt))))
+        return cloud
 
 
 def transform_rows(T: np.ndarray, points: np.ndarray) -> np.ndarray:

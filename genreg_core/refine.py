@@ -14,8 +14,7 @@ import open3d as o3d
 import small_gicp
 
 from genreg_core.config import RefineConfig
-
-NORMAL_KNN = 20  # target normals for point-to-plane: this many nearest neighbours (no radius given)
+from genreg_core.score import NORMAL_NEIGHBOURS
 
 
 def o3d_cloud(points: np.ndarray) -> o3d.geometry.PointCloud:
@@ -30,8 +29,8 @@ def downsample(cloud: o3d.geometry.PointCloud, voxel_size: float) -> o3d.geometr
 
 
 def estimate_normals(cloud: o3d.geometry.PointCloud, radius: float | None = None) -> o3d.geometry.PointCloud:
-    """Normals from `NORMAL_KNN` neighbours, or from a radius search (at most 30) when `radius` is given."""
-    search = (o3d.geometry.KDTreeSearchParamKNN(NORMAL_KNN) if radius is None
+    """Normals from `score.NORMAL_NEIGHBOURS` neighbours, or from a radius search (at most 30) when `radius` is given."""
+    search = (o3d.geometry.KDTreeSearchParamKNN(NORMAL_NEIGHBOURS) if radius is None
               else o3d.geometry.KDTreeSearchParamHybrid(radius=radius, max_nn=30))
     cloud.estimate_normals(search)
     return cloud
@@ -96,13 +95,15 @@ def gicp(source: np.ndarray, target: np.ndarray, init: np.ndarray | None = None,
     return np.asarray(result.T_target_source).copy()
 
 
-def refine(src: np.ndarray, tgt: np.ndarray, T_init: np.ndarray, cfg: RefineConfig) -> np.ndarray:
-    """The pipeline's refine stage: `cfg.max_iterations` ICP iterations of `cfg.method` from T_init."""
+def refine(src: np.ndarray, tgt: np.ndarray | o3d.geometry.PointCloud, T_init: np.ndarray, cfg: RefineConfig
+           ) -> np.ndarray:
+    """The pipeline's refine stage: `cfg.max_iterations` ICP iterations of `cfg.method` from T_init (`tgt`
+    may be an Open3D cloud with normals for point-to-plane, `PreparedPair.plane_target`)."""
     return icp(src, tgt, T_init, method=cfg.method, max_distance=cfg.max_correspondence_distance,
                max_iterations=cfg.max_iterations)
 
 
-def guard_icp(src: np.ndarray, tgt: np.ndarray, cfg: RefineConfig) -> np.ndarray:
+def guard_icp(src: np.ndarray, tgt: np.ndarray | o3d.geometry.PointCloud, cfg: RefineConfig) -> np.ndarray:
     """The refinement guard's candidate: ICP from identity with the guard's wide cut-off and iterations
     (no initial guess given)."""
     guard = replace(cfg, max_correspondence_distance=cfg.guard_distance, max_iterations=cfg.guard_iterations)

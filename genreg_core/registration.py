@@ -174,8 +174,9 @@ class Registrar:
         T_n = est.transform[k].double().cpu().numpy()
         inlier_ratio = float(est.inliers[k].float().mean())
         refining = cfg.refine.method != "none"
+        target = p.plane_target if cfg.refine.method == "point_to_plane" else p.dense_tgt  # ICP's target
         if refining:
-            T_n = refine(p.dense_src, p.dense_tgt, T_n, cfg.refine)  # 6. refine GenReg's estimate
+            T_n = refine(p.dense_src, target, T_n, cfg.refine)  # 6. refine GenReg's estimate
         distance = fitness_distance(p.target_index)
         tight_distance = TIGHT_SPACINGS * p.target_index.spacing
 
@@ -200,19 +201,19 @@ class Registrar:
         if p.init is not None:  # 6. the initial guess (identity in the guess-moved frame), kept or refined
             kept = np.eye(4)
             if refining:  # refinement must earn its move away from the user's guess, at one spacing
-                moved = refine(p.dense_src, p.dense_tgt, kept, cfg.refine)
+                moved = refine(p.dense_src, target, kept, cfg.refine)
                 kept = moved if closer(moved, kept, REFINED_GUESS_MARGIN) else kept
             rival = (kept, *overlap_fitness(p.dense_src, p.target_index, kept, distance))
             if rival[1] + GUESS_MARGIN > fitness:  # another pose replaces the guess only with a margin
                 (T_n, fitness, rmse_n), start = rival, "initial_guess"
                 inlier_ratio = agreement(T_n)
         elif refining and confidence(fitness, tight(T_n), inlier_ratio) < cfg.refine.guard_below:
-            guarded = guard_icp(p.dense_src, p.dense_tgt, cfg.refine)  # 6. the guard: wide ICP from identity
+            guarded = guard_icp(p.dense_src, target, cfg.refine)  # 6. the guard: wide ICP from identity
             if closer(guarded, T_n):
                 T_n, start, rescore = guarded, "initial_guess", True
         if cfg.fallback.method != "none" and confidence(fitness, tight(T_n), inlier_ratio) < cfg.fallback.below:
             rescue = fallback(p.dense_src, p.dense_tgt, cfg.fallback)  # 6. opt-in classical fallback
-            rescue = refine(p.dense_src, p.dense_tgt, rescue, cfg.refine) if refining else rescue
+            rescue = refine(p.dense_src, target, rescue, cfg.refine) if refining else rescue
             if closer(rescue, T_n):
                 T_n, start, rescore = rescue, "fallback", True
         if rescore:  # the guard's or the fallback's pose: scored afresh

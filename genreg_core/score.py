@@ -23,7 +23,7 @@ from genreg_core.geometry import apply_transform
 
 FITNESS_SPACINGS = 3.0  # fitness counts a source point as overlapping within this many target spacings
 TIGHT_SPACINGS = 1.0  # tight fitness: within this many (the guard's comparison, a third of the confidence)
-NORMAL_NEIGHBOURS = 20  # pose_covariance: target normals from this many nearest neighbours (as refine.NORMAL_KNN)
+NORMAL_NEIGHBOURS = 20  # target normals (covariance, point-to-plane ICP) from this many nearest neighbours
 REMEMBERED_QUERIES = 3  # TargetIndex.nearest answers the same points again from memory (last this many)
 # pose_covariance's model error, calibrated on redkitchen training pairs by scripts/calibrate_covariance.py
 # (MODEL_CARD.md): the Gauss-Newton covariance times COVARIANCE_INFLATION (residuals of neighbouring points
@@ -91,7 +91,7 @@ class TargetIndex:
 def sorted_distinct(values: np.ndarray) -> np.ndarray:
     """np.unique of an integer array by sorting (numpy 2's hash-based np.unique is 10x slower here)."""
     ordered = np.sort(values)
-    return ordered[np.concatenate([[True], ordered[1:] != ordered[:-1]])]
+    return ordered[np.concatenate([[True], ordered[1:] != ordered[:-1]])] if len(ordered) else ordered
 
 
 def plane_normals(points: np.ndarray, neighbours: np.ndarray) -> np.ndarray:
