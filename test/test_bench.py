@@ -337,3 +337,17 @@ def test_partial_suite_cli_on_object_pairs(tmp_path, run_bench_cli):
     for r in data["records"]:
         assert 0.0 <= r["overlap"] <= 1.0 and r["category"] and "error" not in r, r
     assert "RE mean w/o sym." in (tmp_path / "report.md").read_text()
+
+
+def test_pairs_flag_sets_every_dataset_count_and_keeps_the_suite_name():
+    """`--pairs N` replaces the suite's per-dataset counts (an evenly spread N of each, all when a set holds
+    fewer); the report keeps the suite's name and its methods."""
+    from genreg_core.bench.cli import parse_args
+    from genreg_core.bench.datasets import SUITES, resolve_suite
+
+    args = parse_args(["--suite", "partial", "--pairs", "48", "--out", "x"])
+    suite = SUITES[args.suite].with_pairs(args.suite, args.pairs)
+    name, resolved, _ = resolve_suite(suite, None)
+    assert name == "partial" and resolved.methods == SUITES["partial"].methods
+    assert set(resolved.counts.values()) == {48} and set(resolved.counts) == set(SUITES["partial"].counts)
+    assert SUITES["partial"].counts["sun3d-kidnap-gap5"] == 5  # the suite itself is untouched

@@ -58,6 +58,8 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     p.add_argument("--datasets", nargs="+", help="only these datasets of the suite")
     p.add_argument("--methods", nargs="+", help="only these methods")
     p.add_argument("--max-pairs", type=int, help="at most this many pairs per dataset")
+    p.add_argument("--pairs", type=int, help="this many pairs per dataset (evenly spread; all when it holds fewer) "
+                   "instead of the suite's counts")
     p.add_argument("--object-points", type=int, default=512, help="points per ModelNet40 cloud (default 512)")
     p.add_argument("--fmr-points", type=int, default=1024, help="points per FMR-style cloud (default 1024)")
     p.add_argument("--frame-stride", type=int,
@@ -87,7 +89,7 @@ def main(argv: list[str] | None = None) -> int:
     import open3d as o3d
 
     o3d.utility.set_verbosity_level(o3d.utility.VerbosityLevel.Error)  # RANSAC's mutual-filter notes
-    from genreg_core.bench.datasets import DATASETS, OBJECT, SCENE, BenchOptions
+    from genreg_core.bench.datasets import DATASETS, OBJECT, SCENE, SUITES, BenchOptions
     from genreg_core.bench.methods import DEFAULT_CHECKPOINTS
     from genreg_core.bench.report import load_run, write_report
     from genreg_core.bench.runner import run_benchmark
@@ -120,7 +122,8 @@ def main(argv: list[str] | None = None) -> int:
             run = run_ablations(args.suite, checkpoints, options, args.ablation, args.datasets, args.max_pairs,
                                 progress=not args.no_progress, log=log, backbones=backbones)
         else:
-            run = run_benchmark(args.suite, checkpoints, options, args.methods, args.datasets, args.max_pairs,
+            suite = args.suite if args.pairs is None else SUITES[args.suite].with_pairs(args.suite, args.pairs)
+            run = run_benchmark(suite, checkpoints, options, args.methods, args.datasets, args.max_pairs,
                                 progress=not args.no_progress, log=log)
     except ValueError as exc:
         print(f"genreg-bench: {exc}", file=sys.stderr)

@@ -275,11 +275,17 @@ DATASETS: dict[str, DatasetSpec] = dataset_specs()
 @dataclass(frozen=True)
 class Suite:
     """Pairs per dataset (None: all of them, evenly spread picks otherwise), option overrides (they fill the
-    options a caller left None) and the default methods (None: `methods.DEFAULT_METHODS`)."""
+    options a caller left None), the default methods (None: `methods.DEFAULT_METHODS`) and a name for the
+    report (None: "custom")."""
 
     counts: dict[str, int | None]
     options: dict[str, Any] = field(default_factory=dict)
     methods: tuple[str, ...] | None = None
+    name: str | None = None
+
+    def with_pairs(self, name: str, pairs: int) -> Suite:
+        """The same suite, named `name`, with `pairs` pairs of every dataset."""
+        return replace(self, counts=dict.fromkeys(self.counts, pairs), name=name)
 
 
 # Kidnapped scene pairs per dataset in the partial suite: at full resolution every baseline takes seconds
@@ -322,7 +328,7 @@ def resolve_suite(suite: str | Suite, options: BenchOptions | None) -> tuple[str
     options = replace(options, **{k: v for k, v in spec_suite.options.items() if getattr(options, k) is None})
     if options.frame_stride is None:
         options = replace(options, frame_stride=1)
-    return suite if isinstance(suite, str) else "custom", spec_suite, options
+    return suite if isinstance(suite, str) else suite.name or "custom", spec_suite, options
 
 
 def plan_pairs(
