@@ -9,6 +9,8 @@ Conventions:
   which ones were kept.
 - rclpy messages and rosbags' deserialised messages (same field names, `data` a uint8 array) are both
   read here: the node decodes live messages and `genreg_ros.bag.reader` bag messages with `read_points`.
+  The node subscribes to clouds serialised (`raw=True`) and deserialises them with `from_cdr` (rosbags'
+  CDR reader: 0.7 ms for a 4.4 MB cloud, where rclpy's own deserialisation takes about 16 ms).
 
 Speed: nothing here loops over points. `msg.data` is read with `np.frombuffer` (no copy) and written
 as one `array.array('B')` built with `frombytes` (one memcpy) and handed to the message without a
@@ -20,10 +22,15 @@ from __future__ import annotations
 import array
 import sys
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
+from rosbags.typesys import Stores, get_typestore
 from sensor_msgs.msg import PointCloud2, PointField
 from std_msgs.msg import Header
+
+TYPESTORE = get_typestore(Stores.ROS2_KILTED)  # rosbags' message types: the bag tools and `from_cdr`
+CLOUD_TYPE = "sensor_msgs/msg/PointCloud2"
 
 # PointField.datatype -> numpy scalar type (byte order applied separately).
 _DATATYPES: dict[int, np.dtype] = {
@@ -83,6 +90,17 @@ class DecodedCloud:
     @property
     def num_dropped(self) -> int:
         return self.num_input - len(self.points)
+
+
+def from_cdr(raw: bytes) -> Any:
+    """A serialised (CDR) PointCloud2 as rosbags' message: `data` a numpy uint8 array (one copy of the
+    bytes), the header a rosbags Header (stamp.sec, stamp.nanosec, frame_id). Raises PointCloud2Error
+    ("undecodable_message") on bytes that are not a PointCloud2."""
+    try:
+        return TYPESTORE.deserialize_cdr(raw, CLOUD_TYPE)
+    except Exception as exc:  # rosbags raises several types on malformed bytes
+        raise PointCloud2Error("undecodable_message",
+                               f"not a serialised PointCloud2 ({len(raw)} bytes): {exc}") from exc
 
 
 def parse_layout(msg: PointCloud2) -> CloudLayout:

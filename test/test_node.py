@@ -27,6 +27,7 @@ from geometry_msgs.msg import PoseWithCovarianceStamped, TransformStamped
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.parameter import Parameter
 from rclpy.qos import QoSProfile, ReliabilityPolicy
+from rclpy.serialization import serialize_message
 from scipy.spatial.transform import Rotation
 from sensor_msgs.msg import PointCloud2, PointField
 from std_msgs.msg import Header
@@ -401,10 +402,12 @@ def bad_cloud(kind: str, t: float):
     if kind == "truncated":
         src.data = src.data[: len(src.data) - 100]
         return src, tgt, "truncated_data"
+    if kind == "undecodable":  # serialised bytes that are no PointCloud2 (the node subscribes raw)
+        return serialize_message(src)[:40], tgt, "undecodable_message"
     raise ValueError(kind)
 
 
-BAD_KINDS = ["empty", "no_xyz", "all_nan", "beyond_slop", "two_million", "empty_frame", "truncated"]
+BAD_KINDS = ["empty", "no_xyz", "all_nan", "beyond_slop", "two_million", "empty_frame", "truncated", "undecodable"]
 
 
 def test_each_bad_input_is_warned_counted_and_the_next_pair_registers(shared, capfd):
@@ -427,7 +430,7 @@ def test_each_bad_input_is_warned_counted_and_the_next_pair_registers(shared, ca
     for kind in BAD_KINDS:
         reason = bad_cloud(kind, 0.0)[2]
         assert f"dropped ({reason})" in err, f"no warning for {kind}"
-    assert "slop" in err and "max_points" in err and "row_step * height" in err
+    assert "slop" in err and "max_points" in err and "row_step * height" in err and "not a serialised PointCloud2" in err
 
 
 def test_newer_pairs_replace_waiting_ones(shared):

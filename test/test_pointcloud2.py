@@ -210,3 +210,31 @@ def test_transform_cloud_matches_independent_math(fmt, big):
     got = np.c_[unpack(out, "x"), unpack(out, "y"), unpack(out, "z")]
     np.testing.assert_allclose(got, expected, atol=1e-5 if fmt == "f" else 1e-12)
     assert unpack(out, "ring") == keep and out.is_bigendian == big
+
+
+def test_from_cdr_reads_serialised_clouds_as_the_rclpy_message_and_names_bad_bytes():
+    """The node's raw subscriptions: `from_cdr` of rclpy-serialised clouds (little and big endian, NaN rows,
+    float64) decodes to exactly what the rclpy message decodes to; bytes that are no
+    PointCloud2 raise PointCloud2Error('undecodable_message')."""
+    from rclpy.serialization import serialize_message
+
+    from genreg_ros.pointcloud2 import PointCloud2Error, from_cdr
+
+    rng = np.random.default_rng(2)
+    for order, kind in (("<", "f4"), (">", "f4"), ("<", "f8")):
+        dt = np.dtype({"names": ["x", "y", "z", "intensity"], "formats": [order + kind] * 3 + [order + "f4"]})
+        rec = np.zeros(1000, dt)
+        for name in dt.names:
+            rec[name] = rng.normal(size=1000)
+        rec["x"][::7] = np.nan
+        msg = array_to_msg(Header(frame_id="lidar"), rec, is_dense=False)
+        msg.header.stamp.sec, msg.header.stamp.nanosec = 12, 345
+        raw = from_cdr(serialize_message(msg))
+        assert raw.header.frame_id == "lidar" and (raw.header.stamp.sec, raw.header.stamp.nanosec) == (12, 345)
+        ours, theirs = read_points(raw), read_points(msg)
+        np.testing.assert_array_equal(ours.points, theirs.points)
+        np.testing.assert_array_equal(ours.mask, theirs.mask)
+        np.testing.assert_array_equal(ours.records, theirs.records)
+    with pytest.raises(PointCloud2Error) as info:
+        from_cdr(serialize_message(msg)[:40])
+    assert info.value.reason == "undecodable_message"

@@ -17,13 +17,10 @@ from typing import Any
 import numpy as np
 import yaml
 from rosbags.rosbag2 import Reader
-from rosbags.typesys import Stores, get_typestore
 
 from genreg_ros.conversions import msg_to_matrix, stamp_ns
-from genreg_ros.pointcloud2 import PointCloud2Error, read_points, unpack_rgb
+from genreg_ros.pointcloud2 import CLOUD_TYPE, TYPESTORE, PointCloud2Error, read_points, unpack_rgb
 
-TYPESTORE = get_typestore(Stores.ROS2_KILTED)
-CLOUD_TYPE = "sensor_msgs/msg/PointCloud2"
 POSE_TYPES = ("geometry_msgs/msg/TransformStamped", "geometry_msgs/msg/PoseStamped")
 
 

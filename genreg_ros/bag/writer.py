@@ -22,16 +22,14 @@ from typing import Any, Self
 
 import numpy as np
 from rosbags.rosbag2 import StoragePlugin, Writer
-from rosbags.typesys import Stores, get_typestore
 
 from genreg_core.data.rgbd import RGBDSequence
 from genreg_ros import conversions
+from genreg_ros.pointcloud2 import CLOUD_TYPE, TYPESTORE
 
-TYPESTORE = get_typestore(Stores.ROS2_KILTED)
 STORAGES = {"mcap": StoragePlugin.MCAP, "sqlite3": StoragePlugin.SQLITE3}
 BAG_VERSION = 9
 INFO_KEY = "genreg"
-CLOUD_TYPE = "sensor_msgs/msg/PointCloud2"
 TRANSFORM_TYPE = "geometry_msgs/msg/TransformStamped"
 DEFAULT_CLOUD_TOPIC = "/camera/depth/points"
 DEFAULT_POSE_TOPIC = "/camera/pose"
