@@ -3,8 +3,8 @@
 A `Method` maps (source, target) arrays to a `MethodOutput`: the 4x4 target_from_source estimate, its wall
 time (the method's own preprocessing included) and JSON-ready details (GenReg: confidence, fitness, inlier
 ratio and stage timings of `RegistrationResult`). GenReg methods load one checkpoint per dataset kind
-("object", "scene"): `genreg` (network + PDSAC), `genreg+icp` and `genreg+p2plane` (the API's point-to-point
-/ point-to-plane refinement with its guard) and `genreg+p2plane+fallback` (plus the opt-in FPFH + RANSAC
+("object", "scene"): `genreg` (network + PDSAC), `genreg+icp`, `genreg+p2plane` and `genreg+gicp` (the API's
+point-to-point / point-to-plane / GICP refinement with its guard) and `genreg+p2plane+fallback` (plus the opt-in FPFH + RANSAC
 fallback; reported apart from GenReg's own figures); `load_each` skips a checkpoint that does not load, with a
 message. A suite runs its own methods (`datasets.Suite.methods`), `DEFAULT_METHODS` unless it names them.
 `measure_throughput` times the network + PDSAC stage (`Registrar.estimate`) at batch 1 and batched.
@@ -30,7 +30,7 @@ from genreg_core.registration import Registrar
 DEFAULT_CHECKPOINTS = {OBJECT: "modelnet40", SCENE: "7scenes"}
 # genreg+p2plane+fallback: with the opt-in classical fallback (FPFH + RANSAC below confidence 0.3); reported
 # apart, never counted as GenReg's own figures
-GENREG_METHODS = ("genreg", "genreg+icp", "genreg+p2plane", "genreg+p2plane+fallback")
+GENREG_METHODS = ("genreg", "genreg+icp", "genreg+p2plane", "genreg+gicp", "genreg+p2plane+fallback")
 REFERENCE_METHODS = ("identity",)
 ALL_METHODS = (*REFERENCE_METHODS, *GENREG_METHODS, *BASELINES)
 # The smoke, quick and full suites' methods (the paper tables' comparison).
@@ -78,11 +78,13 @@ def genreg_method(registrar: Registrar) -> Method:
 
 
 def load_genreg(checkpoint: str, seed: int) -> dict[str, Registrar]:
-    """'genreg' (network + PDSAC), 'genreg+icp' and 'genreg+p2plane' (the API's point-to-point or
-    point-to-plane refinement, default settings and guard) on one model."""
+    """'genreg' (network + PDSAC), 'genreg+icp', 'genreg+p2plane' and 'genreg+gicp' (the API's point-to-point,
+    point-to-plane or GICP refinement (GICP: the node's scene setting, config/genreg.yaml), default settings
+    and guard) on one model."""
     plain = Registrar.from_checkpoint(checkpoint, RegistrationConfig(seed=seed))
     refined = {name: Registrar(plain.model, RegistrationConfig(seed=seed, refine=RefineConfig(method=method)))
-               for name, method in (("genreg+icp", "point_to_point"), ("genreg+p2plane", "point_to_plane"))}
+               for name, method in (("genreg+icp", "point_to_point"), ("genreg+p2plane", "point_to_plane"),
+                                     ("genreg+gicp", "gicp"))}
     rescued = Registrar(plain.model, RegistrationConfig(seed=seed, refine=RefineConfig(method="point_to_plane"),
                                                         fallback=FallbackConfig(method="fpfh_ransac")))
     return {"genreg": plain, **refined, "genreg+p2plane+fallback": rescued}

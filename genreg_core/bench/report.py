@@ -300,6 +300,7 @@ def markdown(run: BenchRun, thresholds: Sequence[float] = DEFAULT_CONFIDENCE_THR
     ]
     present = {r["method"] for r in run.records}
     notes = {"genreg+p2plane": "`genreg+p2plane` = the same with point-to-plane ICP",
+             "genreg+gicp": "`genreg+gicp` = the same with small_gicp's GICP (the node's scene setting)",
              "fpfh+ransac+icp-accurate": ("`fpfh+ransac+icp` on metric frames runs at 5 cm feature voxels (fast), "
                                           "`fpfh+ransac+icp-accurate` at 2.5 cm (normal and FPFH radii and RANSAC "
                                           "distance halved too)"),
