@@ -295,9 +295,10 @@ PARTIAL_PAIRS = {"redkitchen-kidnap-gap30": 12, "redkitchen-kidnap-gap60": 12, "
                  "sun3d-kidnap-gap20": 5}
 MODELNET = [f"modelnet-{c}-{v}" for c in ("seen", "unseen") for v in ("clean", "noise", "partial")]
 RPMNET = ["modelnet-rpmnet-seen", "modelnet-rpmnet-unseen"]
-# Issue 13's comparison: GenReg (alone, + point-to-point, + point-to-plane) beside the partial-overlap baselines.
-PARTIAL_METHODS = ("identity", "genreg", "genreg+icp", "genreg+p2plane", "icp-p2plane", "fpfh+ransac+icp",
-                   "fpfh+ransac+icp-accurate", "kiss-matcher+p2plane", "small_gicp")
+# Issue 13's comparison: GenReg (alone, + point-to-point, + point-to-plane, + GICP: the node's scene setting)
+# beside the partial-overlap baselines.
+PARTIAL_METHODS = ("identity", "genreg", "genreg+icp", "genreg+p2plane", "genreg+gicp", "icp-p2plane",
+                   "fpfh+ransac+icp", "fpfh+ransac+icp-accurate", "kiss-matcher+p2plane", "small_gicp")
 SUITES: dict[str, Suite] = {
     # A few pairs end to end (CI): quarter-resolution frames keep it to seconds.
     "smoke": Suite({"modelnet-unseen-clean": 3, "modelnet-seen-partial": 2, "redkitchen-fmr": 2,
