@@ -137,7 +137,11 @@ class ModelConfig:
     generation_k: int = setting(8, "Neighbours of the pick that generation 'neighbours' mixes.", low=2, high=64)
     overlap_head: bool = setting(False, "Per-point overlap score (supervised by the true overlap); PDSAC draws "
                                  "and scores with it.")
-    norm: str = setting("group", "Normalisation in the point MLPs.", choices=("none", "group"))
+    norm: str = setting("group", "Normalisation in the point MLPs: group (statistics over each cloud's points, "
+                        "which move when a cloud is cropped) or none (each point's features depend only on its "
+                        "neighbourhood).", choices=("none", "group"))
+    pointer_centring: bool = setting(True, "The soft pointer centres queries and keys on their cloud's mean (True; "
+                                     "a statistic of the whole cloud) or on learned constants, its biases (False).")
     discriminator_hidden: tuple[int, ...] = setting((64, 128), "Discriminator per-point widths (training only).")
 
     def __post_init__(self) -> None:

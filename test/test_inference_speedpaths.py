@@ -7,6 +7,7 @@ import itertools
 import numpy as np
 import pytest
 import torch
+from scipy.spatial.transform import Rotation
 from scipy.stats import chisquare
 from torch import nn
 
@@ -14,6 +15,7 @@ from genreg_core.config import ModelConfig, PDSACConfig
 from genreg_core.geometry import apply_transform, invert_transform, kabsch, random_transform
 from genreg_core.model.gcnn import knn_indices, neighbour_max
 from genreg_core.model.genreg import GenRegNet, neighbour_mix
+from genreg_core.model.invariant import smallest_eigenpair3
 from genreg_core.model.layers import gather_neighbours, per_cloud, point_mlp
 from genreg_core.pdsac import (
     batch_in_threads,
@@ -221,3 +223,25 @@ def test_overlap_weighted_bidirectional_recovers_the_motion_past_a_majority_of_o
     assert torch.allclose(T_est, T_true, atol=1e-6)
     T_est, *_ = pdsac_bidirectional(a, a_gen, b, b_gen, cfg, torch.Generator().manual_seed(0))
     assert torch.allclose(T_est, T_wrong, atol=1e-6)  # control: unweighted, the majority wins
+
+
+def test_closed_form_eigenpair_equals_numpy_eigh_on_planar_linear_and_random_neighbourhoods():
+    rng = np.random.default_rng(0)
+    plane = rng.normal(size=(200, 20, 3)) * [1.0, 0.5, 1e-4]  # nearly flat: the normal is well defined
+    line = rng.normal(size=(200, 20, 3)) * [1.0, 1e-3, 1e-3]  # two equal small eigenvalues
+    blob = rng.normal(size=(200, 20, 3))
+    rotations = Rotation.random(600, random_state=1).as_matrix()
+    groups = np.einsum("nij,nkj->nki", rotations, np.concatenate([plane, line, blob]))
+    centred = groups - groups.mean(axis=1, keepdims=True)
+    cov = np.einsum("nki,nkj->nij", centred, centred) / 20
+    evals, normal = (t.numpy() for t in smallest_eigenpair3(torch.from_numpy(cov).float()))
+    ref_vals, ref_vecs = np.linalg.eigh(cov)
+    assert np.abs(evals - ref_vals).max() <= 1e-6 * ref_vals.max()
+    np.testing.assert_allclose(np.linalg.norm(normal, axis=1), 1.0, atol=1e-6)
+    dots = np.abs(np.einsum("ni,ni->n", normal[:400], ref_vecs[:400, :, 0]))  # unsigned normals
+    assert dots[:200].min() > 1 - 1e-6  # flat groups
+    # equal smallest eigenvalues: any unit vector of their plane is an eigenvector; it must be orthogonal to
+    # the line's direction (the largest eigenvector) and have the smallest Rayleigh quotient
+    assert np.abs(np.einsum("ni,ni->n", normal[200:400], ref_vecs[200:400, :, 2])).max() < 1e-3
+    rayleigh = np.einsum("ni,nij,nj->n", normal.astype(np.float64), cov, normal.astype(np.float64))
+    assert np.all(rayleigh <= ref_vals[:, 0] + 1e-6 * ref_vals[:, 2])

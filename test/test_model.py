@@ -256,3 +256,65 @@ def test_knn_point_feature_ignores_a_crop_elsewhere():
     full, part = pts, pts[:, keep]
     assert torch.allclose(inputs(full, "knn")[keep][inner], inputs(part, "knn")[inner], atol=1e-9)
     assert not torch.allclose(inputs(full, "centroid")[keep][inner], inputs(part, "centroid")[inner], atol=1e-3)
+
+
+LOCAL_GN = ModelConfig(num_points=64, k_neighbors=8, gcnn_channels=16, feature_dim=16, backbone="dgcnn",
+                       point_feature="knn", generation="neighbours", generation_k=6, overlap_head=True)
+
+
+def _group_moments(model: torch.nn.Module, cloud: torch.Tensor) -> dict:
+    """Each GroupNorm's per-group input mean and variance, and the pointer's query / key means, on one
+    centred cloud (1, N, 3) (the statistics the model uses on it)."""
+    from genreg_core.model.fold import NormStatistics
+
+    seen: dict = {}
+    names = {m: n for n, m in model.named_modules()}
+    hooks = [m.register_forward_hook(lambda mod, inp, _o: seen.__setitem__(names[mod], (
+        inp[0].reshape(1, mod.num_groups, -1).mean(-1)[0], inp[0].reshape(1, mod.num_groups, -1).var(-1, unbiased=False)[0])))
+        for m in model.modules() if isinstance(m, torch.nn.GroupNorm)]
+    with torch.no_grad():
+        f = model.encoder(cloud)
+    for h in hooks:
+        h.remove()
+    return NormStatistics(seen, model.pointer.query(f).mean(1)[0], model.pointer.key(f).mean(1)[0])
+
+
+def test_folding_fixed_statistics_gives_the_groupnorm_model_on_a_cloud_with_those_statistics():
+    from genreg_core.model.fold import fold_statistics
+
+    torch.manual_seed(0)
+    model = GenRegNet(LOCAL_GN).eval()
+    with torch.no_grad():  # non-trivial affine parameters, positive scales
+        for m in model.modules():
+            if isinstance(m, torch.nn.GroupNorm):
+                m.weight.uniform_(0.5, 2.0), m.bias.uniform_(-0.5, 0.5)
+    a = torch.rand(1, 64, 3)
+    folded = fold_statistics(model, _group_moments(model, a - a.mean(1, keepdim=True)))
+    assert folded.config.norm == "none" and not folded.config.pointer_centring
+    assert not any(isinstance(m, torch.nn.GroupNorm) for m in folded.modules())
+    with torch.no_grad():  # a pair of the same cloud: both clouds have the folded statistics
+        ref, out = model.encode(a, a), folded.encode(a, a)
+        assert torch.allclose(ref.f_a, out.f_a, atol=1e-5)
+        m_ref, m_out = model.interact(ref), folded.interact(out)
+    assert torch.allclose(m_ref.log_w_a, m_out.log_w_a, atol=1e-4)
+    assert torch.allclose(m_ref.overlap_a, m_out.overlap_a, atol=1e-4)
+    with torch.no_grad():
+        model.encoder.gcnn.context.norm.weight[0] = -1.0
+    with pytest.raises(CheckpointError, match="non-positive scale"):
+        fold_statistics(model, _group_moments(model, a - a.mean(1, keepdim=True)))
+
+
+def test_statistics_free_features_ignore_a_crop_elsewhere_and_groupnorm_features_do_not():
+    """norm none + knn point feature + dgcnn backbone: a point whose neighbourhood a crop leaves
+    intact keeps its features; with GroupNorm they move."""
+    torch.manual_seed(0)
+    pts = torch.rand(1, 400, 3)
+    keep = pts[0, :, 0] < 0.8
+    inner = pts[0, keep, 0] < 0.2  # far from the cut: the same three-hop neighbourhoods (normals, PPF, edge conv)
+    assert inner.sum() > 50
+    for norm, centring, local in (("none", False, True), ("group", True, False)):
+        model = GenRegNet(ModelConfig(**{**LOCAL_GN.__dict__, "norm": norm, "pointer_centring": centring})).eval()
+        with torch.no_grad():
+            full, part = model.encoder(pts - pts.mean(1, keepdim=True)), model.encoder(pts[:, keep] - pts[:, keep].mean(1, keepdim=True))
+            same = torch.allclose(full[0, keep][inner], part[0, inner], atol=1e-5)
+        assert same == local, norm

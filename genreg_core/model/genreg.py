@@ -89,10 +89,12 @@ class PointMixerEncoder(nn.Module):
 
 class SoftPointer(nn.Module):
     """Match logits of each point of x onto the points of y: cosine similarity of learned query/key
-    features, each centred over its cloud, times a learned sharpness (starts at `sharpness`)."""
+    features, each centred over its cloud (`centred`; else the biases carry the centre), times a learned
+    sharpness (starts at `sharpness`)."""
 
-    def __init__(self, channels: int, dim: int, sharpness: float = 10.0) -> None:
+    def __init__(self, channels: int, dim: int, sharpness: float = 10.0, centred: bool = True) -> None:
         super().__init__()
+        self.centred = centred
         self.query = nn.Linear(channels, dim)
         self.key = nn.Linear(channels, dim)
         self.log_sharpness = nn.Parameter(torch.tensor(float(sharpness)).log())
@@ -100,9 +102,9 @@ class SoftPointer(nn.Module):
     def forward(self, f_x: torch.Tensor, f_y: torch.Tensor) -> torch.Tensor:
         """(B, N, C), (B, M, C) features -> log weights (B, N, M), normalised over M."""
         q, k = self.query(f_x), self.key(f_y)
-        # Centred over each cloud's points: the component all points share carries no match.
-        q = nn.functional.normalize(q - q.mean(dim=1, keepdim=True), dim=-1)
-        k = nn.functional.normalize(k - k.mean(dim=1, keepdim=True), dim=-1)
+        if self.centred:  # the component all points share carries no match
+            q, k = q - q.mean(dim=1, keepdim=True), k - k.mean(dim=1, keepdim=True)
+        q, k = nn.functional.normalize(q, dim=-1), nn.functional.normalize(k, dim=-1)
         logits, sharpness = q @ k.transpose(1, 2), self.log_sharpness.exp()
         logits = logits * sharpness if torch.is_grad_enabled() else logits.mul_(sharpness)
         return torch.log_softmax(logits, dim=-1)
@@ -173,7 +175,8 @@ class GenRegNet(nn.Module):
         super().__init__()
         self.config = cfg or ModelConfig()
         self.encoder = PointMixerEncoder(self.config)
-        self.pointer = SoftPointer(self.config.feature_dim, self.config.attention_dim)
+        self.pointer = SoftPointer(self.config.feature_dim, self.config.attention_dim,
+                                   centred=self.config.pointer_centring)
         self.overlap = OverlapHead(self.config.feature_dim) if self.config.overlap_head else None
 
     def encode(self, a: torch.Tensor, b: torch.Tensor) -> Encoded:

@@ -18,6 +18,8 @@ hops of context). Output (B, N, C). Geometry is computed without gradient: the i
 
 from __future__ import annotations
 
+import math
+
 import torch
 from torch import nn
 
@@ -25,7 +27,33 @@ from genreg_core.model.gcnn import EdgeConv, knn_indices
 from genreg_core.model.layers import gather_neighbours, per_cloud, point_mlp
 
 __all__ = ["InvariantEncoder", "PPFStem", "gather_neighbours", "invariant_geometry", "local_shape",
-           "point_pair_features"]
+           "point_pair_features", "smallest_eigenpair3"]
+
+
+def smallest_eigenpair3(cov: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Ascending eigenvalues (..., 3) and the unit eigenvector of the smallest (..., 3), unsigned, of
+    symmetric positive semi-definite (..., 3, 3) matrices, in closed form: the trigonometric solution of
+    the characteristic cubic, then the largest cross product of two rows of cov - lambda_min I. Float64
+    inside, results in cov's dtype. Equal to `torch.linalg.eigh` to ~1e-7 of the largest eigenvalue (normals
+    to a |dot| of 1 - 3e-7, tested) at a third of its time on 2 x 512 neighbourhoods: LAPACK solves one small
+    matrix after another."""
+    c = cov.double()
+    a00, a11, a22, a01, a02, a12 = c[..., 0, 0], c[..., 1, 1], c[..., 2, 2], c[..., 0, 1], c[..., 0, 2], c[..., 1, 2]
+    q = (a00 + a11 + a22) / 3
+    b00, b11, b22 = a00 - q, a11 - q, a22 - q  # B = cov - q I
+    p = ((b00.square() + b11.square() + b22.square() + 2 * (a01.square() + a02.square() + a12.square())) / 6).sqrt()
+    det_b = b00 * (b11 * b22 - a12 * a12) - a01 * (a01 * b22 - a12 * a02) + a02 * (a01 * a12 - b11 * a02)
+    phi = torch.acos((det_b / (2 * p.clamp_min(1e-150) ** 3)).clamp(-1.0, 1.0)) / 3
+    largest, smallest = q + 2 * p * torch.cos(phi), q + 2 * p * torch.cos(phi + 2 * math.pi / 3)
+    evals = torch.stack([smallest, 3 * q - smallest - largest, largest], dim=-1)
+    rows = c - smallest[..., None, None] * torch.eye(3, dtype=c.dtype, device=c.device)
+    r0, r1, r2 = rows.unbind(dim=-2)
+    crosses = torch.stack([torch.linalg.cross(r0, r1), torch.linalg.cross(r0, r2), torch.linalg.cross(r1, r2)], dim=-2)
+    lengths = torch.linalg.norm(crosses, dim=-1)  # (..., 3): the largest is the best conditioned
+    best = lengths.argmax(dim=-1, keepdim=True)
+    vector = torch.gather(crosses, -2, best[..., None].expand(*best.shape, 3))[..., 0, :]
+    vector = vector / torch.gather(lengths, -1, best).clamp_min(1e-300)
+    return evals.to(cov.dtype), vector.to(cov.dtype)
 
 
 @torch.no_grad()
@@ -34,8 +62,8 @@ def local_shape(points: torch.Tensor, neighbours: torch.Tensor) -> tuple[torch.T
     neighbourhood (B, N, k) in (B, N, 3) points."""
     nb = gather_neighbours(points, neighbours)
     centred = nb - nb.mean(dim=2, keepdim=True)
-    evals, evecs = torch.linalg.eigh(centred.transpose(-1, -2) @ centred / neighbours.shape[-1])
-    return evecs[..., 0], evals
+    evals, normals = smallest_eigenpair3(centred.transpose(-1, -2) @ centred / neighbours.shape[-1])
+    return normals, evals
 
 
 @torch.no_grad()
