@@ -155,11 +155,15 @@ class PDSACConfig:
     """Parallel differentiable sample consensus (paper Sec. 3.3)."""
 
     num_hypotheses: int = setting(512, "PDSAC hypotheses m drawn at once.", low=1, high=100000)
-    sample_size: int = setting(4, "PDSAC correspondences k per minimal set.", low=3, high=64)
+    sample_size: int = setting(3, "PDSAC correspondences k per minimal set (3: the fewest that fix a rigid motion, so the "
+                               "most sets free of outliers).", low=3, high=64)
     inlier_threshold: float = setting(0.0, "PDSAC inlier residual, m (input units); 0: auto, 5 % of the "
                                       "source's robust extent.", low=0.0, high=1e4)
     temperature: float = setting(0.01, "Softmax temperature of the soft (training) selection.", low=1e-9)
     refit: bool = setting(True, "Least-squares refit on the winner's inliers (inference).")
+    local_candidates: int = setting(4, "Best hypotheses of each direction refit once on their inliers among both "
+                                    "directions' correspondences and compared there (LO-RANSAC's local "
+                                    "optimisation; inference).", low=1, high=1000)
 
     def __post_init__(self) -> None:
         check_ranges(self, "pdsac.")

@@ -19,8 +19,9 @@ Combining both directions (the paper's T_est = T_A^-1 T_B is written for row vec
 ambiguous). Column convention: A_g = T_A A maps A's frame into B's, and B_g = T_B B maps B's frame
 into A's. Hence both T_A and T_B^-1 estimate T_BA, the transform from source A to target B, and the
 union of correspondences {A_i -> A_g,i} and {B_g,i -> B_i} all obey B-frame = T_BA A-frame.
-`pdsac_bidirectional` scores both candidates on that union, keeps the better one and refits it by
-least squares on the union's inliers: T_est = T_BA, so that target ~ T_est source.
+`pdsac_bidirectional` takes the `local_candidates` best hypotheses of each direction, refits each once on
+its inliers in that union (local optimisation, as in LO-RANSAC), scores them on the union, keeps the best
+and refits it by least squares on the union's inliers: T_est = T_BA, so that target ~ T_est source.
 
 Inference (`pdsac_bidirectional`, no gradient) runs both directions as one batch, and draws weighted
 minimal sets by inverse CDF (`sample_weighted_sequential`): the distribution of the multinomial draws
@@ -286,6 +287,29 @@ def split_result(res: PDSACResult, B: int) -> tuple[PDSACResult, PDSACResult]:
     return PDSACResult(*(h[0] for h in halves)), PDSACResult(*(h[1] for h in halves))
 
 
+def best_hypotheses(res_a: PDSACResult, res_b: PDSACResult, n: int) -> torch.Tensor:
+    """The n best-scoring hypotheses of each direction as transforms source A -> target B: (B, 2 n, 4, 4),
+    A's (T_A) first, then B's inverted (T_B^-1)."""
+    picks = []
+    for res, invert in ((res_a, False), (res_b, True)):
+        best = res.scores.topk(min(n, res.scores.shape[1]), dim=1, largest=False).indices  # (B, n)
+        T = torch.gather(res.hypotheses, 1, best[..., None, None].expand(-1, -1, 4, 4))
+        picks.append(invert_transform(T) if invert else T)
+    return torch.cat(picks, dim=1)
+
+
+def local_optimisation(candidates: torch.Tensor, src: torch.Tensor, dst: torch.Tensor, threshold: float,
+                       weights: torch.Tensor | None = None) -> torch.Tensor:
+    """Each candidate (B, C, 4, 4), dst ~ T src, refit once by least squares on its inliers among the (B, N, 3)
+    correspondences (weighted by `weights` (B, N) if given), kept where fewer than 3 remain: a minimal set's
+    fit carries its 3 points' noise, the refit averages it over all the inliers it found."""
+    B, C = candidates.shape[:2]
+    flat = candidates.reshape(B * C, 4, 4)
+    rows = (src.repeat_interleave(C, dim=0), dst.repeat_interleave(C, dim=0))
+    w = None if weights is None else weights.repeat_interleave(C, dim=0)
+    return refit_on_inliers(flat, *rows, threshold, rounds=1, weights=w)[0].reshape(B, C, 4, 4)
+
+
 @torch.no_grad()
 def pdsac_bidirectional(
     a: torch.Tensor,
@@ -313,7 +337,7 @@ def pdsac_bidirectional(
         res_b = pdsac(b, b_gen, cfg, refit=False, weights=o_b, sets=sets_b)
     src, dst = union_correspondences(a, a_gen, b, b_gen)
     w = None if overlap is None else torch.cat([o_a, o_b], dim=1)
-    candidates = torch.stack([res_a.transform, invert_transform(res_b.transform)], dim=1)  # (B, 2, 4, 4)
+    candidates = local_optimisation(best_hypotheses(res_a, res_b, cfg.local_candidates), src, dst, cfg.tau, w)
     score = truncated_score(residuals(candidates, src[:, None], dst[:, None]), cfg.tau, w)
     T = candidates[torch.arange(a.shape[0]), score.argmin(dim=1)]
     if cfg.refit:

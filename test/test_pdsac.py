@@ -136,3 +136,39 @@ def test_overlap_weights_steer_sampling_and_scoring_past_a_majority_of_outliers(
     sets = sample_weighted_sets(weights, 500, 4, torch.Generator().manual_seed(1))
     assert sets.shape == (1, 500, 4) and int(sets.max()) < 40
     assert (sets[..., 1:] > sets[..., :-1]).all()  # distinct, ascending
+
+
+def test_local_optimisation_refits_each_candidate_on_exactly_its_inliers():
+    """Against scipy's least-squares rotation (Kabsch via Rotation.align_vectors) on the candidate's inlier set."""
+    from scipy.spatial.transform import Rotation
+
+    from genreg_core.pdsac import local_optimisation, residuals
+
+    rng = np.random.default_rng(3)
+    T, src, dst = _pair(3, n=300)
+    dst = dst + torch.tensor(rng.normal(scale=0.01, size=dst.shape))  # inlier noise
+    dst[:90] = torch.tensor(rng.uniform(-1, 2, (90, 3)))  # 30 % outliers
+    near = torch.tensor(T) @ torch.tensor(random_transform(rng, max_angle_deg=2.0, max_translation=0.02))
+    candidates = torch.stack([near, torch.tensor(T)])[None]  # (1, 2, 4, 4)
+    refit = local_optimisation(candidates, src[None], dst[None], threshold=0.05)
+    for c in range(2):
+        keep = (residuals(candidates[0, c], src, dst) < 0.05).numpy()
+        s, d = src.numpy()[keep], dst.numpy()[keep]
+        R, _ = Rotation.align_vectors(d - d.mean(0), s - s.mean(0))
+        np.testing.assert_allclose(refit[0, c, :3, :3].numpy(), R.as_matrix(), atol=1e-9)
+        np.testing.assert_allclose(refit[0, c, :3, 3].numpy(), d.mean(0) - R.as_matrix() @ s.mean(0), atol=1e-9)
+    assert transform_errors(refit[0, 0].numpy(), T)[0] < transform_errors(near.numpy(), T)[0]
+
+
+def test_best_hypotheses_are_each_directions_lowest_scores_with_b_inverted():
+    from genreg_core.pdsac import PDSACResult, best_hypotheses
+
+    rng = np.random.default_rng(4)
+    hyps = torch.tensor(np.stack([[random_transform(rng) for _ in range(10)] for _ in range(2)]))  # (2 dirs, 10)
+    scores = torch.tensor(rng.random((2, 10)))
+    res = [PDSACResult(hyps[i][0], hyps[i][None], scores[i][None], scores[i][None], torch.ones(1, 5, dtype=bool))
+           for i in range(2)]
+    picked = best_hypotheses(res[0], res[1], 3)[0]
+    order = np.argsort(scores.numpy(), axis=1)[:, :3]
+    assert torch.allclose(picked[:3], hyps[0][order[0]])
+    assert torch.allclose(picked[3:], invert_transform(hyps[1][order[1]]))
