@@ -30,6 +30,7 @@ from typing import Any
 import numpy as np
 
 from genreg_core.config import (
+    SCENE_PDSAC,
     FallbackConfig,
     PDSACConfig,
     RefineConfig,
@@ -209,8 +210,9 @@ SETTINGS: tuple[Setting, ...] = settings(NodeConfig)
 # ----------------------------------------------------------------------------- the params files
 CONFIG_DIR = Path(__file__).resolve().parent.parent / "config"
 # The shipped params files: name -> (what it is for, the settings that differ from NodeConfig's defaults).
-# Scenes: the scene model and small_gicp's GICP (best of the refinements on real pairs, MODEL_CARD.md)
-SCENE_OVERRIDES = {"model.checkpoint": "7scenes", "refine.method": "gicp"}
+# Scenes: the scene model, small_gicp's GICP (best of the refinements on real pairs, MODEL_CARD.md) and the
+# scene PDSAC settings (genreg_core.config.SCENE_PDSAC)
+SCENE_OVERRIDES = {"model.checkpoint": "7scenes", "refine.method": "gicp", "pdsac.sample_size": SCENE_PDSAC.sample_size}
 PROFILES: dict[str, tuple[str, dict[str, Any]]] = {
     "genreg.yaml": ("depth-camera and indoor scenes (the scene model 7scenes)", SCENE_OVERRIDES),
     "genreg_objects.yaml": ("object models (the object model modelnet40, clouds of a single object)", {}),

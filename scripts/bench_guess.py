@@ -18,7 +18,7 @@ import torch
 from scipy.spatial.transform import Rotation
 from tqdm import tqdm
 
-from genreg_core.config import RefineConfig, RegistrationConfig
+from genreg_core.config import SCENE_PDSAC, RefineConfig, RegistrationConfig
 from genreg_core.data import RGBDSequence
 from genreg_core.geometry import make_transform
 from genreg_core.metrics import transform_errors
@@ -53,7 +53,7 @@ def main() -> int:
                  for i in chosen]
         guesses = [noisy(T, rng) for *_, T in pairs]
         for method in args.methods:
-            reg = Registrar.from_checkpoint("7scenes", RegistrationConfig(refine=RefineConfig(method=method)))
+            reg = Registrar.from_checkpoint("7scenes", RegistrationConfig(pdsac=SCENE_PDSAC, refine=RefineConfig(method=method)))
             errors = {}
             for label in ("none", "noisy", "exact"):
                 errors[label] = np.array([

@@ -110,14 +110,14 @@ def scene_figures(args: argparse.Namespace, threads: int) -> Figures:
         icp_point_to_plane,
         small_gicp_gicp,
     )
-    from genreg_core.config import RefineConfig, RegistrationConfig
+    from genreg_core.config import SCENE_PDSAC, RefineConfig, RegistrationConfig
     from genreg_core.data import RGBDSequence
     from genreg_core.registration import Registrar
 
     sequence = RGBDSequence.redkitchen()
     pair = (sequence.points(SCENE_FRAMES[0]), sequence.points(SCENE_FRAMES[1]))
-    plain = Registrar.from_checkpoint("7scenes", RegistrationConfig(seed=0))
-    p2plane = Registrar(plain.model, RegistrationConfig(seed=0, refine=RefineConfig(method="point_to_plane")))
+    plain = Registrar.from_checkpoint("7scenes", RegistrationConfig(seed=0, pdsac=SCENE_PDSAC))
+    p2plane = Registrar(plain.model, RegistrationConfig(seed=0, pdsac=SCENE_PDSAC, refine=RefineConfig(method="point_to_plane")))
     params = replace(BaselineParams.metric_scene(threads), icp_voxel_size=SCENE_VOXEL, gicp_voxel_size=SCENE_VOXEL)
     baseline_pairs = [pair] * args.baseline_repeats
     return {

@@ -22,7 +22,7 @@ from scipy.spatial.transform import Rotation
 from tqdm import tqdm
 
 from genreg_core import registration
-from genreg_core.config import RefineConfig, RegistrationConfig
+from genreg_core.config import SCENE_PDSAC, RefineConfig, RegistrationConfig
 from genreg_core.data import RGBDSequence
 from genreg_core.registration import Registrar
 
@@ -61,7 +61,7 @@ def main() -> int:
     args = p.parse_args()
     registration.COVARIANCE_INFLATION, registration.COVARIANCE_FLOOR_M, registration.COVARIANCE_FLOOR_RAD = 1.0, 0.0, 0.0
     rng = np.random.default_rng(args.seed)
-    reg = Registrar.from_checkpoint("7scenes", RegistrationConfig(refine=RefineConfig(method=args.method)))
+    reg = Registrar.from_checkpoint("7scenes", RegistrationConfig(pdsac=SCENE_PDSAC, refine=RefineConfig(method=args.method)))
     kitchen = RGBDSequence.redkitchen()
     train = collect(reg, kitchen, range(790), args.pairs, rng, args.stride, "train")
     errors = np.array([e for e, _ in train])

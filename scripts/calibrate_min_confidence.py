@@ -18,7 +18,7 @@ import numpy as np
 from tqdm import tqdm
 
 from genreg_core.bench.report import roc_auc
-from genreg_core.config import RefineConfig, RegistrationConfig
+from genreg_core.config import SCENE_PDSAC, RefineConfig, RegistrationConfig
 from genreg_core.data import RGBDSequence
 from genreg_core.geometry import apply_transform, kidnap_motion
 from genreg_core.metrics import transform_errors
@@ -33,7 +33,7 @@ def main() -> int:
     p.add_argument("--seed", type=int, default=0)
     args = p.parse_args()
     rng = np.random.default_rng(args.seed)
-    reg = Registrar.from_checkpoint("7scenes", RegistrationConfig(refine=RefineConfig(method=args.method)))
+    reg = Registrar.from_checkpoint("7scenes", RegistrationConfig(pdsac=SCENE_PDSAC, refine=RefineConfig(method=args.method)))
     seq = RGBDSequence.redkitchen()
     conf, ok = [], []
     for _ in tqdm(range(args.pairs), leave=False):

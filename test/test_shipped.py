@@ -10,7 +10,7 @@ import pytest
 import torch
 
 from genreg_core.checkpoint import load_checkpoint, resolve_checkpoint
-from genreg_core.config import WEIGHTS_DIR, ModelConfig, RefineConfig, RegistrationConfig
+from genreg_core.config import SCENE_PDSAC, WEIGHTS_DIR, ModelConfig, RefineConfig, RegistrationConfig
 from genreg_core.data import ModelNetPairs, RGBDSequence, load_modelnet40
 from genreg_core.metrics import transform_errors
 from genreg_core.model import build_model
@@ -102,7 +102,7 @@ def test_shipped_object_model_alone_is_accurate_on_unseen_categories(name, objec
 def test_shipped_scene_model_with_point_to_plane_is_accurate_on_redkitchen_validation():
     """5 redkitchen validation pairs (frames 800-999, gap 10, every second pixel), ground-truth poses."""
     seq = RGBDSequence.redkitchen()
-    reg = Registrar.from_checkpoint("7scenes", RegistrationConfig(refine=RefineConfig(method="point_to_plane")))
+    reg = Registrar.from_checkpoint("7scenes", RegistrationConfig(pdsac=SCENE_PDSAC, refine=RefineConfig(method="point_to_plane")))
     errors = []
     for i in (805, 845, 885, 925, 965):
         res = reg.register(seq.points(i + 10, stride=2), seq.points(i, stride=2))

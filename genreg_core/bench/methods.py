@@ -22,7 +22,7 @@ import torch
 
 from genreg_core.bench.baselines import BASELINES, BaselineFn, BaselineParams, identity
 from genreg_core.bench.datasets import OBJECT, SCENE
-from genreg_core.config import FallbackConfig, RefineConfig, RegistrationConfig
+from genreg_core.config import FallbackConfig, PDSACConfig, RefineConfig, RegistrationConfig
 from genreg_core.errors import CheckpointError
 from genreg_core.pdsac import seeded_generator
 from genreg_core.registration import Registrar
@@ -77,15 +77,16 @@ def genreg_method(registrar: Registrar) -> Method:
     return run
 
 
-def load_genreg(checkpoint: str, seed: int) -> dict[str, Registrar]:
+def load_genreg(checkpoint: str, seed: int, pdsac: PDSACConfig | None = None) -> dict[str, Registrar]:
     """'genreg' (network + PDSAC), 'genreg+icp', 'genreg+p2plane' and 'genreg+gicp' (the API's point-to-point,
     point-to-plane or GICP refinement (GICP: the node's scene setting, config/genreg.yaml), default settings
-    and guard) on one model."""
-    plain = Registrar.from_checkpoint(checkpoint, RegistrationConfig(seed=seed))
-    refined = {name: Registrar(plain.model, RegistrationConfig(seed=seed, refine=RefineConfig(method=method)))
+    and guard) on one model, with `pdsac` settings (default: the API's; scenes: `config.SCENE_PDSAC`)."""
+    pdsac = pdsac or PDSACConfig()
+    plain = Registrar.from_checkpoint(checkpoint, RegistrationConfig(seed=seed, pdsac=pdsac))
+    refined = {name: Registrar(plain.model, RegistrationConfig(seed=seed, pdsac=pdsac, refine=RefineConfig(method=method)))
                for name, method in (("genreg+icp", "point_to_point"), ("genreg+p2plane", "point_to_plane"),
                                      ("genreg+gicp", "gicp"))}
-    rescued = Registrar(plain.model, RegistrationConfig(seed=seed, refine=RefineConfig(method="point_to_plane"),
+    rescued = Registrar(plain.model, RegistrationConfig(seed=seed, pdsac=pdsac, refine=RefineConfig(method="point_to_plane"),
                                                         fallback=FallbackConfig(method="fpfh_ransac")))
     return {"genreg": plain, **refined, "genreg+p2plane+fallback": rescued}
 

@@ -29,6 +29,7 @@ import torch
 from tqdm import tqdm
 
 from genreg_core.bench.datasets import (
+    SCENE,
     BenchOptions,
     DatasetSpec,
     PairTruth,
@@ -49,6 +50,7 @@ from genreg_core.bench.methods import (
     measure_throughput,
     method_table,
 )
+from genreg_core.config import SCENE_PDSAC
 
 Measure = Callable[[MethodOutput, PairTruth], dict[str, Any]]  # extra record fields from output and truth
 
@@ -146,8 +148,10 @@ def run_benchmark(
     genreg = {}
     if any(m in GENREG_METHODS for m in wanted):
         kinds = {kind: checkpoints[kind] for kind in sorted({spec.kind for spec, _, _ in plan})}
-        genreg = load_each(kinds, lambda c: load_genreg(c, options.seed), "GenReg skipped on {name} datasets: {error}",
-                           skipped, log)
+        for kind, checkpoint in kinds.items():  # scenes with the scene PDSAC settings (config.SCENE_PDSAC)
+            pdsac = SCENE_PDSAC if kind == SCENE else None
+            genreg.update(load_each({kind: checkpoint}, lambda c, p=pdsac: load_genreg(c, options.seed, p),
+                                    "GenReg skipped on {name} datasets: {error}", skipped, log))
 
     records, infos, throughput = [], {}, []
     warmed: set[tuple[str, str, str]] = set()

@@ -1,0 +1,95 @@
+#!/usr/bin/env python3
+"""Choose PDSAC's inference settings (hypotheses, minimal-set size, local optimisation) on training pairs.
+
+    python scripts/calibrate_pdsac.py --settings 512x4x1 512x3x1 512x3x4 1024x3x4 --kinds crop partial clean
+
+A setting is HYPOTHESESxSAMPLE_SIZExLOCAL_CANDIDATES (`PDSACConfig`). Kinds, never benchmark pairs:
+- crop: RPM-Net-style crops of the ModelNet40 *train* split (seen categories), 100 pairs (seed 2), each
+  registered with PDSAC seeds 0 and 1, `modelnet40_partial`;
+- partial / clean: the paper's one-side partial and clean pairs of the same split, 100 pairs (seed 1,
+  picks seed 3), `modelnet40`;
+- kidnap30 / kidnap60: redkitchen *training* frames (0-799) 30 / 60 apart, the source moved by a kidnap
+  motion, 40 pairs (seeds 7 / 8), pixel stride 2, `7scenes`.
+Per setting: RE mean / median and success alone and refined (point-to-point; GICP on scenes, the node's).
+The MODEL_CARD "PDSAC settings" table is this script's output (its "before" rows: the code before
+`local_candidates`, commit 4aa431f).
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
+
+KINDS = ("crop", "partial", "clean", "kidnap30", "kidnap60")
+
+
+def main() -> int:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("--settings", nargs="+", default=["512x3x4"])
+    p.add_argument("--kinds", nargs="+", choices=KINDS, default=list(KINDS))
+    p.add_argument("--threads", type=int, default=1)
+    args = p.parse_args()
+    from genreg_core.bench.cli import configure_threads
+
+    configure_threads(args.threads)
+    import numpy as np
+    from tqdm import tqdm
+
+    from genreg_core.bench.datasets import RPMNetPairs
+    from genreg_core.config import PDSACConfig, RefineConfig, RegistrationConfig
+    from genreg_core.data import ModelNetPairs, RGBDSequence, load_modelnet40
+    from genreg_core.geometry import apply_transform, kidnap_motion
+    from genreg_core.metrics import transform_errors
+    from genreg_core.registration import Registrar
+
+    def pairs_of(kind: str) -> tuple[str, list[tuple], tuple[int, ...]]:
+        """(checkpoint, [(source, target, T_gt)], PDSAC seeds) for a kind."""
+        if kind.startswith("kidnap"):
+            gap, seq = int(kind[6:]), RGBDSequence.redkitchen()
+            rng = np.random.default_rng(7 if gap == 30 else 8)
+            items = []
+            for _ in range(40):
+                i = int(rng.integers(0, 800 - gap))
+                src, tgt = seq.points(i + gap, stride=2), seq.points(i, stride=2)
+                K = kidnap_motion(rng, src.mean(axis=0))
+                items.append((apply_transform(K, src), tgt, seq.relative_pose(i + gap, i) @ np.linalg.inv(K)))
+            return "7scenes", items, (0,)
+        shapes = load_modelnet40("train", "seen")
+        if kind == "crop":
+            crops = RPMNetPairs(shapes, seed=2)
+            picks = np.random.default_rng(2).choice(len(crops), 100, replace=False)
+            return "modelnet40_partial", [(it["source"], it["target"], it["transform"]) for it in
+                                          (crops[int(i)] for i in picks)], (0, 1)
+        pairs = ModelNetPairs(shapes, 512, kind, seed=1)
+        picks = np.random.default_rng(3).choice(len(pairs), 100, replace=False)
+        return "modelnet40", [(it["source"], it["target"], it["transform"]) for it in
+                              (pairs[int(i)] for i in picks)], (0,)
+
+    print("| pairs | PDSAC (hypotheses x sample size, local candidates) | alone: RE mean / median (deg), success "
+          "| refined |\n|---|---|---|---|")
+    for kind in args.kinds:
+        checkpoint, items, seeds = pairs_of(kind)
+        scene = kind.startswith("kidnap")
+        for setting in args.settings:
+            m, k, local = (int(v) for v in setting.split("x"))
+            cells = []
+            for method in ("none", "gicp" if scene else "point_to_point"):
+                errors = []
+                for seed in seeds:
+                    cfg = RegistrationConfig(seed=seed, refine=RefineConfig(method=method),
+                                             pdsac=PDSACConfig(num_hypotheses=m, sample_size=k, local_candidates=local))
+                    registrar = Registrar.from_checkpoint(checkpoint, cfg)
+                    errors += [transform_errors(registrar.register(s, t).transformation, T)
+                               for s, t, T in tqdm(items, desc=f"{kind} {setting} {method}", leave=False)]
+                e = np.array(errors)
+                ok = (e[:, 0] < 2.0) & (e[:, 1] < 0.05) if scene else e[:, 0] < 5.0
+                cells.append(f"{e[:, 0].mean():.2f} / {np.median(e[:, 0]):.2f}, {ok.mean():.1%}")
+            print(f"| {kind}, `{checkpoint}` | {m} x {k}, {local} | {cells[0]} | {cells[1]} |", flush=True)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
