@@ -93,6 +93,11 @@ def settings(cls_or_obj: Any, prefix: str = "") -> tuple[Setting, ...]:
     return tuple(out)
 
 
+def _check(condition: bool, message: str) -> None:
+    if not condition:
+        raise ConfigError(message)
+
+
 def check_ranges(obj: Any, prefix: str = "") -> None:
     """Raise ConfigError if a field of dataclass `obj` is outside its declared limits or choices."""
     for f in dataclasses.fields(obj):
@@ -161,12 +166,16 @@ class PDSACConfig:
                                       "source's robust extent.", low=0.0, high=1e4)
     temperature: float = setting(0.01, "Softmax temperature of the soft (training) selection.", low=1e-9)
     refit: bool = setting(True, "Least-squares refit on the winner's inliers (inference).")
+    refit_tightening: tuple[float, ...] = setting((0.5, 0.25), "After the refit, one more refit at each of these "
+                                                  "fractions of the inlier threshold: the tight rounds keep only the "
+                                                  "closest correspondences ([]: none).")
     local_candidates: int = setting(4, "Best hypotheses of each direction refit once on their inliers among both "
                                     "directions' correspondences and compared there (LO-RANSAC's local "
                                     "optimisation; inference).", low=1, high=1000)
 
     def __post_init__(self) -> None:
         check_ranges(self, "pdsac.")
+        _check(all(0.0 < f <= 1.0 for f in self.refit_tightening), "pdsac.refit_tightening: fractions in (0, 1]")
 
     @property
     def tau(self) -> float:
@@ -252,11 +261,6 @@ class RegistrationConfig:
         _check(self.device == "cpu" or self.device == "cuda" or (
             self.device.startswith("cuda:") and self.device[5:].isdigit()),
             f"device must be cpu, cuda or cuda:<index>, got {self.device!r}")
-
-
-def _check(condition: bool, message: str) -> None:
-    if not condition:
-        raise ConfigError(message)
 
 
 T = TypeVar("T")

@@ -21,7 +21,9 @@ into A's. Hence both T_A and T_B^-1 estimate T_BA, the transform from source A t
 union of correspondences {A_i -> A_g,i} and {B_g,i -> B_i} all obey B-frame = T_BA A-frame.
 `pdsac_bidirectional` takes the `local_candidates` best hypotheses of each direction, refits each once on
 its inliers in that union (local optimisation, as in LO-RANSAC), scores them on the union, keeps the best
-and refits it by least squares on the union's inliers: T_est = T_BA, so that target ~ T_est source.
+and refits it by least squares on the union's inliers, then again at tighter thresholds
+(`refit_tightening`: the loose threshold lets in matches a few samples off, which bias the fit): T_est =
+T_BA, so that target ~ T_est source. The returned inliers are those within the inlier threshold.
 
 Inference (`pdsac_bidirectional`, no gradient) runs both directions as one batch, and draws weighted
 minimal sets by inverse CDF (`sample_weighted_sequential`): the distribution of the multinomial draws
@@ -342,6 +344,9 @@ def pdsac_bidirectional(
     T = candidates[torch.arange(a.shape[0]), score.argmin(dim=1)]
     if cfg.refit:
         T, inliers = refit_on_inliers(T, src, dst, cfg.tau, weights=w)
+        for fraction in cfg.refit_tightening:  # annealed: only the closest correspondences fit last
+            T, _ = refit_on_inliers(T, src, dst, cfg.tau * fraction, rounds=1, weights=w)
+        inliers = residuals(T, src, dst) < cfg.tau if cfg.refit_tightening else inliers
     else:
         inliers = residuals(T, src, dst) < cfg.tau
     return T, res_a, res_b, inliers

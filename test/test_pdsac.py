@@ -172,3 +172,24 @@ def test_best_hypotheses_are_each_directions_lowest_scores_with_b_inverted():
     order = np.argsort(scores.numpy(), axis=1)[:, :3]
     assert torch.allclose(picked[:3], hyps[0][order[0]])
     assert torch.allclose(picked[3:], invert_transform(hyps[1][order[1]]))
+
+
+def test_tightened_refits_drop_near_misses_that_bias_the_plain_refit():
+    """Half the correspondences exact, half off by up to 80 % of the inlier threshold in one direction
+    (matches a sample or two away, as a pick generator makes): the plain refit at the threshold keeps them
+    and is pulled off; the rounds at half and a quarter of it keep only the exact ones."""
+    rng = np.random.default_rng(5)
+    T = random_transform(rng)
+    a = torch.tensor(rng.random((1, 400, 3)))
+    a_gen = apply_transform(torch.tensor(T), a)
+    off = torch.zeros_like(a_gen)
+    off[0, 200:, 0] = torch.tensor(rng.uniform(0.0, 0.04, 200))  # tau 0.05: every one an inlier
+    b = torch.tensor(rng.random((1, 400, 3)))
+    b_gen = apply_transform(invert_transform(torch.tensor(T)), b)
+    errors = {}
+    for tightening in ((), (0.5, 0.25)):
+        cfg = PDSACConfig(inlier_threshold=0.05, refit_tightening=tightening)
+        T_est, *_ = pdsac_bidirectional(a, a_gen + off, b, b_gen, cfg, torch.Generator().manual_seed(0))
+        errors[tightening] = transform_errors(T_est[0].numpy(), T)
+    assert errors[(0.5, 0.25)][1] < 0.25 * errors[()][1]  # translation: the bias of the one-sided near misses
+    assert errors[(0.5, 0.25)][0] <= errors[()][0] + 1e-3
