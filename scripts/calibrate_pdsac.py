@@ -1,15 +1,18 @@
 #!/usr/bin/env python3
 """Choose PDSAC's inference settings (hypotheses, minimal-set size, local optimisation) on training pairs.
 
-    python scripts/calibrate_pdsac.py --settings 512x4x1 512x3x1 512x3x4 1024x3x4 --kinds crop partial clean
+    python scripts/calibrate_pdsac.py --settings 512x4x1x- 512x3x4x- 512x3x4x0.5,0.25 --kinds crop partial clean
 
-A setting is HYPOTHESESxSAMPLE_SIZExLOCAL_CANDIDATES (`PDSACConfig`). Kinds, never benchmark pairs:
+A setting is HYPOTHESESxSAMPLE_SIZExLOCAL_CANDIDATES[xTIGHTENING] (`PDSACConfig`; TIGHTENING: the
+`refit_tightening` fractions, comma-separated, "-" for none; default the config's). Kinds, never
+benchmark pairs:
 - crop: RPM-Net-style crops of the ModelNet40 *train* split (seen categories), 100 pairs (seed 2), each
   registered with PDSAC seeds 0 and 1, `modelnet40_partial`;
 - partial / clean: the paper's one-side partial and clean pairs of the same split, 100 pairs (seed 1,
   picks seed 3), `modelnet40`;
 - kidnap30 / kidnap60: redkitchen *training* frames (0-799) 30 / 60 apart, the source moved by a kidnap
-  motion, 40 pairs (seeds 7 / 8), pixel stride 2, `7scenes`.
+  motion, 40 pairs (seeds 7 / 8), pixel stride 2, `7scenes` (success: RE < 2 deg and TE < 5 cm);
+- gap10: redkitchen training frames 10 apart, no kidnap, 40 pairs (seed 11), stride 2, `7scenes`.
 Per setting: RE mean / median and success alone and refined (point-to-point; GICP on scenes, the node's).
 The MODEL_CARD "PDSAC settings" table is this script's output (its "before" rows: the code before
 `local_candidates`, commit 4aa431f).
@@ -23,7 +26,7 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
-KINDS = ("crop", "partial", "clean", "kidnap30", "kidnap60")
+KINDS = ("crop", "partial", "clean", "kidnap30", "kidnap60", "gap10")
 
 
 def main() -> int:
@@ -47,6 +50,11 @@ def main() -> int:
 
     def pairs_of(kind: str) -> tuple[str, list[tuple], tuple[int, ...]]:
         """(checkpoint, [(source, target, T_gt)], PDSAC seeds) for a kind."""
+        if kind == "gap10":
+            seq, rng = RGBDSequence.redkitchen(), np.random.default_rng(11)
+            starts = [int(rng.integers(0, 790)) for _ in range(40)]
+            return "7scenes", [(seq.points(i + 10, stride=2), seq.points(i, stride=2), seq.relative_pose(i + 10, i))
+                               for i in starts], (0,)
         if kind.startswith("kidnap"):
             gap, seq = int(kind[6:]), RGBDSequence.redkitchen()
             rng = np.random.default_rng(7 if gap == 30 else 8)
@@ -72,22 +80,26 @@ def main() -> int:
           "| refined |\n|---|---|---|---|")
     for kind in args.kinds:
         checkpoint, items, seeds = pairs_of(kind)
-        scene = kind.startswith("kidnap")
+        scene = kind.startswith(("kidnap", "gap"))
         for setting in args.settings:
-            m, k, local = (int(v) for v in setting.split("x"))
+            m, k, local, *rest = setting.split("x")
+            tightening = PDSACConfig().refit_tightening if not rest else (
+                () if rest[0] == "-" else tuple(float(f) for f in rest[0].split(",")))
             cells = []
             for method in ("none", "gicp" if scene else "point_to_point"):
                 errors = []
                 for seed in seeds:
                     cfg = RegistrationConfig(seed=seed, refine=RefineConfig(method=method),
-                                             pdsac=PDSACConfig(num_hypotheses=m, sample_size=k, local_candidates=local))
+                                             pdsac=PDSACConfig(num_hypotheses=int(m), sample_size=int(k),
+                                                               local_candidates=int(local), refit_tightening=tightening))
                     registrar = Registrar.from_checkpoint(checkpoint, cfg)
                     errors += [transform_errors(registrar.register(s, t).transformation, T)
                                for s, t, T in tqdm(items, desc=f"{kind} {setting} {method}", leave=False)]
                 e = np.array(errors)
                 ok = (e[:, 0] < 2.0) & (e[:, 1] < 0.05) if scene else e[:, 0] < 5.0
                 cells.append(f"{e[:, 0].mean():.2f} / {np.median(e[:, 0]):.2f}, {ok.mean():.1%}")
-            print(f"| {kind}, `{checkpoint}` | {m} x {k}, {local} | {cells[0]} | {cells[1]} |", flush=True)
+            print(f"| {kind}, `{checkpoint}` | {m} x {k}, {local}, tightening {tightening or '-'} | {cells[0]} "
+                  f"| {cells[1]} |", flush=True)
     return 0
 
 
