@@ -1,7 +1,8 @@
 #!/usr/bin/env python3
 """Make a GenReg checkpoint statistics-free, the warm start of a crop-robust model (issue 13).
 
-    python scripts/fold_norm.py modelnet40_partial runs/modelnet40_local_init.pt --pairs 150
+    git show 4aa431f:genreg_core/weights/modelnet40_partial.pt > prev.pt   # the GroupNorm partial model
+    python scripts/fold_norm.py prev.pt runs/modelnet40_local_init.pt --pairs 150
 
 Why and how: `genreg_core.model.fold`. This script measures the average statistics on RPM-Net-style crops
 of the ModelNet40 *train* split (seen categories, seed 5), folds them and writes the checkpoint (`norm:
