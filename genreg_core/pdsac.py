@@ -34,7 +34,7 @@ minimal sets by inverse CDF (`sample_weighted_sequential`): the distribution of 
 from __future__ import annotations
 
 import os
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
@@ -244,18 +244,19 @@ def truncated_score(res: torch.Tensor, threshold: float, weights: torch.Tensor |
 
 def refit_on_inliers(
     T: torch.Tensor, src: torch.Tensor, dst: torch.Tensor, threshold: float, rounds: int = 2,
-    weights: torch.Tensor | None = None,
+    weights: torch.Tensor | None = None, tightening: Sequence[float] = (),
 ) -> tuple[torch.Tensor, torch.Tensor]:
-    """Least-squares re-estimate on the inliers of T (a few rounds, inliers weighted by `weights` (B, N)
-    if given), keeping T where too few remain."""
-    inliers = residuals(T, src, dst) < threshold
-    for _ in range(rounds):
+    """Least-squares re-estimate on the inliers of T (`rounds` rounds at `threshold`, then one at each
+    `tightening` fraction of it; inliers weighted by `weights` (B, N) if given), keeping T where too few
+    remain. Returns T and its inliers at `threshold`."""
+    res = residuals(T, src, dst)
+    for limit in (threshold,) * rounds + tuple(threshold * f for f in tightening):
+        inliers = res < limit
         enough = inliers.sum(dim=-1) >= 3
         w = inliers.to(src.dtype) if weights is None else inliers.to(src.dtype) * weights
-        refit = kabsch(src, dst, w)
-        T = torch.where(enough[:, None, None], refit, T)
-        inliers = residuals(T, src, dst) < threshold
-    return T, inliers
+        T = torch.where(enough[:, None, None], kabsch(src, dst, w), T)
+        res = residuals(T, src, dst)
+    return T, res < threshold
 
 
 def union_correspondences(
@@ -342,11 +343,8 @@ def pdsac_bidirectional(
     candidates = local_optimisation(best_hypotheses(res_a, res_b, cfg.local_candidates), src, dst, cfg.tau, w)
     score = truncated_score(residuals(candidates, src[:, None], dst[:, None]), cfg.tau, w)
     T = candidates[torch.arange(a.shape[0]), score.argmin(dim=1)]
-    if cfg.refit:
-        T, inliers = refit_on_inliers(T, src, dst, cfg.tau, weights=w)
-        for fraction in cfg.refit_tightening:  # annealed: only the closest correspondences fit last
-            T, _ = refit_on_inliers(T, src, dst, cfg.tau * fraction, rounds=1, weights=w)
-        inliers = residuals(T, src, dst) < cfg.tau if cfg.refit_tightening else inliers
+    if cfg.refit:  # tightened last rounds: only the closest correspondences fit
+        T, inliers = refit_on_inliers(T, src, dst, cfg.tau, weights=w, tightening=cfg.refit_tightening)
     else:
         inliers = residuals(T, src, dst) < cfg.tau
     return T, res_a, res_b, inliers
