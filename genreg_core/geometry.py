@@ -119,6 +119,15 @@ def params_to_transform(params: torch.Tensor) -> torch.Tensor:
     return T
 
 
+def det3(M: torch.Tensor) -> torch.Tensor:
+    """Determinants of (..., 3, 3) matrices by the rule of Sarrus: elementwise, where torch.linalg.det's
+    batched LU costs ~1.5 ms on PDSAC's 1024 hypotheses."""
+    a, b, c = M[..., 0, 0], M[..., 0, 1], M[..., 0, 2]
+    d, e, f = M[..., 1, 0], M[..., 1, 1], M[..., 1, 2]
+    g, h, i = M[..., 2, 0], M[..., 2, 1], M[..., 2, 2]
+    return a * (e * i - f * h) - b * (d * i - f * g) + c * (d * h - e * g)
+
+
 def kabsch(
     source: torch.Tensor, target: torch.Tensor, weights: torch.Tensor | None = None
 ) -> torch.Tensor:
@@ -141,7 +150,7 @@ def kabsch(
             degenerate = gaps <= 1e-6 * sv[..., 0].clamp_min(1e-12)
         cov = torch.where(degenerate[..., None, None], cov.detach(), cov)
     U, _, Vh = torch.linalg.svd(cov)
-    d = torch.sign(torch.linalg.det(Vh.transpose(-1, -2) @ U.transpose(-1, -2)))
+    d = torch.sign(det3(Vh) * det3(U))  # det(V U^T): U, V orthogonal, so +-1
     d = torch.where(d == 0, torch.ones_like(d), d)
     D = torch.diag_embed(torch.stack([torch.ones_like(d), torch.ones_like(d), d], dim=-1))
     R = Vh.transpose(-1, -2) @ D @ U.transpose(-1, -2)

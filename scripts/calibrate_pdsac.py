@@ -14,6 +14,8 @@ benchmark pairs:
   motion, 40 pairs (seeds 7 / 8), pixel stride 2, `7scenes` (success: RE < 2 deg and TE < 5 cm);
 - gap10: redkitchen training frames 10 apart, no kidnap, 40 pairs (seed 11), stride 2, `7scenes`.
 Per setting: RE mean / median and success alone and refined (point-to-point; GICP on scenes, the node's).
+`--checkpoints` replaces a kind's checkpoint by each of these in turn (names or files): the same table
+then chooses among training snapshots, on training pairs.
 The MODEL_CARD "PDSAC settings" table is this script's output (its "before" rows: the code before
 `local_candidates`, commit 4aa431f).
 """
@@ -34,6 +36,7 @@ def main() -> int:
     p.add_argument("--settings", nargs="+", default=["512x3x4"])
     p.add_argument("--kinds", nargs="+", choices=KINDS, default=list(KINDS))
     p.add_argument("--threads", type=int, default=1)
+    p.add_argument("--checkpoints", nargs="+", help="checkpoints to compare in place of each kind's own")
     args = p.parse_args()
     from genreg_core.bench.cli import configure_threads
 
@@ -79,9 +82,9 @@ def main() -> int:
     print("| pairs | PDSAC (hypotheses x sample size, local candidates) | alone: RE mean / median (deg), success "
           "| refined |\n|---|---|---|---|")
     for kind in args.kinds:
-        checkpoint, items, seeds = pairs_of(kind)
+        default, items, seeds = pairs_of(kind)
         scene = kind.startswith(("kidnap", "gap"))
-        for setting in args.settings:
+        for checkpoint, setting in ((c, s) for c in args.checkpoints or [default] for s in args.settings):
             m, k, local, *rest = setting.split("x")
             tightening = PDSACConfig().refit_tightening if not rest else (
                 () if rest[0] == "-" else tuple(float(f) for f in rest[0].split(",")))

@@ -141,3 +141,10 @@ def test_kabsch_gradient_is_finite_for_degenerate_sets_and_flows_for_good_ones()
     # Set 0: only the translation's centroid term (d sum(t) / d dst = 1/4 each); set 1 also rotates.
     assert torch.allclose(dst.grad[0], torch.full((4, 3), 0.25, dtype=torch.float64))
     assert not torch.allclose(dst.grad[1], torch.full((4, 3), 0.25, dtype=torch.float64))
+
+
+def test_det3_equals_torch_linalg_det():
+    from genreg_core.geometry import det3
+
+    M = torch.randn(4, 50, 3, 3, dtype=torch.float64, generator=torch.Generator().manual_seed(0))
+    torch.testing.assert_close(det3(M), torch.linalg.det(M), rtol=1e-12, atol=1e-12)
