@@ -62,6 +62,7 @@ from std_msgs.msg import Header
 from std_srvs.srv import Trigger
 
 from genreg_core.errors import GenRegError
+from genreg_core.memory import retain_freed_memory
 from genreg_core.preprocess import PreprocessConfig, preprocess
 from genreg_ros import params
 from genreg_ros.config import NodeConfig
@@ -699,6 +700,7 @@ def _error(text: str) -> int:
 def main(argv: list[str] | None = None) -> int:
     """Entry point of `ros2 run genreg_ros register_node [--ros-args ...]`; returns the exit code."""
     argv = list(sys.argv if argv is None else argv)
+    retain_freed_memory()  # genreg_core.memory: no page faults per registration
     try:
         for path in params.params_files(argv):
             params.check_params_file(path, params.node_fqn(argv, NODE_NAME))

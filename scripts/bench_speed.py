@@ -177,7 +177,8 @@ def measure(args: argparse.Namespace) -> Figures:
 def run_workers(args: argparse.Namespace) -> dict[int, Figures]:
     """One subprocess per thread count; their figures by thread count."""
     options = ["--repeats", str(args.repeats), "--baseline-repeats", str(args.baseline_repeats),
-               "--object-pairs", str(args.object_pairs), "--batches", *map(str, args.batches)]
+               "--object-pairs", str(args.object_pairs), "--batches", *map(str, args.batches),
+               *(["--default-malloc"] if args.default_malloc else [])]
     results = {}
     for threads in args.threads:
         with tempfile.TemporaryDirectory() as tmp:
