@@ -128,8 +128,6 @@ class ModelConfig:
     num_points: int = setting(512, "N: token mixing fixes it; the API resamples inputs to N.", low=32)
     k_neighbors: int = setting(20, "kNN graph size of the GCNN.", low=1)
     gcnn_channels: int = setting(64, "Edge-convolution output channels.", low=1)
-    context_layers: int = setting(1, "Edge convolutions after the invariant stem (genreg); each one after the "
-                                  "first is residual and widens the receptive field by one kNN hop.", low=1, high=8)
     mixer_hidden: tuple[int, ...] = setting((1024, 128), "Hidden widths of mixer layer 1 and 2.")
     feature_dim: int = setting(128, "Per-point feature width after the mixers.", low=1)
     backbone: str = setting("pointmixer", "pointmixer: GCNN + the paper's two mixer layers; dgcnn: GCNN "
@@ -142,9 +140,6 @@ class ModelConfig:
                               "mean of the pick's generation_k nearest neighbours in B (can leave B's samples; "
                               "rotation-equivariant by construction).", choices=("pick", "neighbours"))
     generation_k: int = setting(8, "Neighbours of the pick that generation 'neighbours' mixes.", low=2, high=64)
-    cross_attention: bool = setting(False, "Interact: before the pointer, each cloud's features attend to the other "
-                                    "cloud's (one residual multi-head attention layer, shared both ways), so a "
-                                    "point's features can tell what the other cloud holds.")
     overlap_head: bool = setting(False, "Per-point overlap score (supervised by the true overlap); PDSAC draws "
                                  "and scores with it.")
     norm: str = setting("group", "Normalisation in the point MLPs: group (statistics over each cloud's points, "

@@ -55,7 +55,11 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     p.add_argument("--baseline-repeats", type=int, default=3, help="baseline runs on the real pair (median)")
     p.add_argument("--object-pairs", type=int, default=20, help="ModelNet40 pairs (median over them)")
     p.add_argument("--batches", type=int, nargs="+", default=[1, 8, 16], help="register_many batch sizes")
+    p.add_argument("--scene-checkpoint", default="7scenes", help="scene model for the real pair (name or file)")
+    p.add_argument("--object-models", nargs="+", default=list(OBJECT_MODELS), help="object models (names or files)")
     p.add_argument("--json", help="also write every figure to this JSON file")
+    p.add_argument("--default-malloc", action="store_true", help="leave glibc's malloc as it is (without "
+                   "genreg_core.memory.retain_freed_memory, which genreg's entry points call)")
     p.add_argument("--worker-out", help=argparse.SUPPRESS)  # internal: measure one thread count, write JSON
     return p.parse_args(argv)
 
@@ -116,11 +120,12 @@ def scene_figures(args: argparse.Namespace, threads: int) -> Figures:
 
     sequence = RGBDSequence.redkitchen()
     pair = (sequence.points(SCENE_FRAMES[0]), sequence.points(SCENE_FRAMES[1]))
-    plain = Registrar.from_checkpoint("7scenes", RegistrationConfig(seed=0, pdsac=SCENE_PDSAC))
+    plain = Registrar.from_checkpoint(args.scene_checkpoint, RegistrationConfig(seed=0, pdsac=SCENE_PDSAC))
     p2plane = Registrar(plain.model, RegistrationConfig(seed=0, pdsac=SCENE_PDSAC, refine=RefineConfig(method="point_to_plane")))
     params = replace(BaselineParams.metric_scene(threads), icp_voxel_size=SCENE_VOXEL, gicp_voxel_size=SCENE_VOXEL)
     baseline_pairs = [pair] * args.baseline_repeats
     return {
+        "checkpoint": args.scene_checkpoint,
         "points": [len(pair[0]), len(pair[1])],
         "api": api_ms(plain, [pair] * args.repeats),
         "api_p2plane": api_ms(p2plane, [pair] * args.repeats),
@@ -146,7 +151,7 @@ def object_figures(args: argparse.Namespace, threads: int) -> Figures:
     pairs = [(dataset[i]["source"], dataset[i]["target"]) for i in indices]
     figures: Figures = {"pairs": len(pairs), "fpfh_ransac": baseline_ms(fpfh_ransac, pairs,
                                                                         BaselineParams.unit_box(threads))}
-    for name in OBJECT_MODELS:
+    for name in args.object_models:
         registrar = Registrar.from_checkpoint(name, RegistrationConfig(seed=0), num_points=OBJECT_POINTS)
         figures[name] = api_ms(registrar, pairs)
         figures[name]["throughput"] = throughput(registrar, pairs, args.batches)
@@ -162,6 +167,10 @@ def measure(args: argparse.Namespace) -> Figures:
     from genreg_core.bench.cli import configure_threads
 
     configure_threads(threads)  # before torch and Open3D run anything
+    if not args.default_malloc:
+        from genreg_core.memory import retain_freed_memory
+
+        retain_freed_memory()
     import open3d as o3d
 
     from genreg_core.bench.runner import thread_report
@@ -178,6 +187,7 @@ def run_workers(args: argparse.Namespace) -> dict[int, Figures]:
     """One subprocess per thread count; their figures by thread count."""
     options = ["--repeats", str(args.repeats), "--baseline-repeats", str(args.baseline_repeats),
                "--object-pairs", str(args.object_pairs), "--batches", *map(str, args.batches),
+               "--scene-checkpoint", args.scene_checkpoint, "--object-models", *args.object_models,
                *(["--default-malloc"] if args.default_malloc else [])]
     results = {}
     for threads in args.threads:
@@ -210,7 +220,7 @@ def print_scene(results: dict[int, Figures]) -> None:
     scenes = [results[t]["scene"] for t in threads]
     points = scenes[0]["points"]
     print(f"\nReal pair: redkitchen {SCENE_FRAMES[0]} -> {SCENE_FRAMES[1]}, {points[0]} / {points[1]} points (m), "
-          "7scenes model; ms (API: wall time of `register`, and its stages preprocess / network / PDSAC / refine "
+          f"{scenes[0]['checkpoint']} model; ms (API: wall time of `register`, and its stages preprocess / network / PDSAC / refine "
           "/ postprocess)")
     rows = [
         ["API, no refinement", *(s["api"]["wall"] for s in scenes), *(stage_split(s["api"]) for s in scenes)],
@@ -228,12 +238,18 @@ def print_scene(results: dict[int, Figures]) -> None:
             print(f"stage shares, {t} thread(s), {label}: {shares}")
 
 
+def object_models(results: dict[int, Figures]) -> list[str]:
+    """The object models measured (every key of the objects' figures that is a model's)."""
+    objects = next(iter(results.values()))["objects"]
+    return [k for k, v in objects.items() if isinstance(v, dict) and "wall" in v]
+
+
 def print_objects(results: dict[int, Figures]) -> None:
     threads = list(results)
     objects = [results[t]["objects"] for t in threads]
     print(f"\nObjects: ModelNet40 unseen categories, N={OBJECT_POINTS}, {objects[0]['pairs']} pairs (unit box); ms")
     rows = []
-    for name in OBJECT_MODELS:
+    for name in object_models(results):
         rows.append([f"API {name}", *(o[name]["wall"] for o in objects), *(stage_split(o[name]) for o in objects),
                      *(f"{o[name]['net_pdsac_batched']:.1f}" for o in objects)])
     rows.append(["FPFH + RANSAC", *(o["fpfh_ransac"] for o in objects), *("" for _ in objects), *("" for _ in objects)])
@@ -248,7 +264,7 @@ def goals(figures: Figures) -> list[tuple[str, float, float]]:
         ("API / p2plane ICP, no refinement", scene["api"]["wall"] / scene["icp_p2plane"], 0.25),
         ("API + p2plane / p2plane ICP", scene["api_p2plane"]["wall"] / scene["icp_p2plane"], 0.35),
     ]
-    for name in OBJECT_MODELS:
+    for name in object_models({0: figures}):
         rows.append((f"{name} / FPFH + RANSAC", objects[name]["wall"] / objects["fpfh_ransac"], 0.4))
         rows.append((f"{name} network + PDSAC, ms", objects[name]["network"] + objects[name]["pdsac"], 10.0))
     api = scene["api"]
@@ -274,9 +290,9 @@ def print_throughput(results: dict[int, Figures]) -> None:
     rows = []
     for t in threads:
         objects, scene = results[t]["objects"], results[t]["scene"]
-        for name in OBJECT_MODELS:
+        for name in object_models(results):
             rows.append([f"{name}, ModelNet40 pairs", t, *(objects[name]["throughput"][b] for b in batches)])
-        rows.append(["7scenes, the real pair", t, *(scene["throughput"][b] for b in batches)])
+        rows.append([f"{scene['checkpoint']}, the real pair", t, *(scene["throughput"][b] for b in batches)])
     print("\nregister_many throughput, pairs per second (no refinement)")
     print(table(["model, pairs", "threads", *(f"batch {b}" for b in batches)], rows))
 

@@ -6,7 +6,8 @@
 A setting is HYPOTHESESxSAMPLE_SIZExLOCAL_CANDIDATES[xTIGHTENING] (`PDSACConfig`; TIGHTENING: the
 `refit_tightening` fractions, comma-separated, "-" for none; default the config's). Kinds, never
 benchmark pairs:
-- crop: RPM-Net-style crops of the ModelNet40 *train* split (seen categories), 100 pairs (seed 2), each
+- crop: RPM-Net-style crops of the ModelNet40 *train* split (seen categories), 100 pairs (seed 2, or
+  `--crop-seed`), each
   registered with PDSAC seeds 0 and 1, `modelnet40_partial`;
 - partial / clean: the paper's one-side partial and clean pairs of the same split, 100 pairs (seed 1,
   picks seed 3), `modelnet40`;
@@ -37,6 +38,7 @@ def main() -> int:
     p.add_argument("--kinds", nargs="+", choices=KINDS, default=list(KINDS))
     p.add_argument("--threads", type=int, default=1)
     p.add_argument("--checkpoints", nargs="+", help="checkpoints to compare in place of each kind's own")
+    p.add_argument("--crop-seed", type=int, default=2, help="crop: the pairs' seed (another set of training crops)")
     args = p.parse_args()
     from genreg_core.bench.cli import configure_threads
 
@@ -70,8 +72,8 @@ def main() -> int:
             return "7scenes", items, (0,)
         shapes = load_modelnet40("train", "seen")
         if kind == "crop":
-            crops = RPMNetPairs(shapes, seed=2)
-            picks = np.random.default_rng(2).choice(len(crops), 100, replace=False)
+            crops = RPMNetPairs(shapes, seed=args.crop_seed)
+            picks = np.random.default_rng(args.crop_seed).choice(len(crops), 100, replace=False)
             return "modelnet40_partial", [(it["source"], it["target"], it["transform"]) for it in
                                           (crops[int(i)] for i in picks)], (0, 1)
         pairs = ModelNetPairs(shapes, 512, kind, seed=1)

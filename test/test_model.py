@@ -304,50 +304,17 @@ def test_folding_fixed_statistics_gives_the_groupnorm_model_on_a_cloud_with_thos
         fold_statistics(model, _group_moments(model, a - a.mean(1, keepdim=True)))
 
 
-@pytest.mark.parametrize("context_layers", [1, 3])
-def test_statistics_free_features_ignore_a_crop_elsewhere_and_groupnorm_features_do_not(context_layers):
+def test_statistics_free_features_ignore_a_crop_elsewhere_and_groupnorm_features_do_not():
     """norm none + knn point feature + dgcnn backbone: a point whose neighbourhood a crop leaves
-    intact keeps its features; with GroupNorm they move. Likewise with two more context hops."""
+    intact keeps its features; with GroupNorm they move."""
     torch.manual_seed(0)
-    pts = torch.rand(1, 2000, 3)
+    pts = torch.rand(1, 400, 3)
     keep = pts[0, :, 0] < 0.8
-    inner = pts[0, keep, 0] < 0.1  # far from the cut: the same five-hop neighbourhoods (normals, PPF, edge convs)
+    inner = pts[0, keep, 0] < 0.2  # far from the cut: the same three-hop neighbourhoods (normals, PPF, edge conv)
     assert inner.sum() > 50
     for norm, centring, local in (("none", False, True), ("group", True, False)):
-        model = GenRegNet(ModelConfig(**{**LOCAL_GN.__dict__, "norm": norm, "pointer_centring": centring,
-                                         "context_layers": context_layers})).eval()
+        model = GenRegNet(ModelConfig(**{**LOCAL_GN.__dict__, "norm": norm, "pointer_centring": centring})).eval()
         with torch.no_grad():
             full, part = model.encoder(pts - pts.mean(1, keepdim=True)), model.encoder(pts[:, keep] - pts[:, keep].mean(1, keepdim=True))
             same = torch.allclose(full[0, keep][inner], part[0, inner], atol=1e-5)
         assert same == local, norm
-
-
-@pytest.mark.parametrize("extra", [{"context_layers": 3}, {"cross_attention": True}])
-def test_deeper_context_and_cross_attention_start_as_the_model_without_them_and_stay_invariant(extra):
-    """Warm-started from a model without them, the new layers (zero-initialised) change nothing; once
-    trained they change the matches, which stay unchanged by a rigid motion of either cloud; and
-    every new parameter is in the backward graph (DDP)."""
-    from scipy.spatial.transform import Rotation
-
-    torch.manual_seed(0)
-    base = GenRegNet(ModelConfig(**{**LOCAL_GN.__dict__, "norm": "none", "pointer_centring": False})).eval()
-    model = GenRegNet(ModelConfig(**{**base.config.__dict__, **extra})).eval()
-    missing = model.load_state_dict(base.state_dict(), strict=False).missing_keys
-    assert missing and all(k.startswith(("encoder.gcnn.more_context", "cross.")) for k in missing)
-    a, b = torch.rand(1, 64, 3, dtype=torch.float64), torch.rand(1, 64, 3, dtype=torch.float64)
-    base.double(), model.double()
-    with torch.no_grad():
-        assert torch.equal(base.interact(base.encode(a, b)).log_w_a, model.interact(model.encode(a, b)).log_w_a)
-        for name, p in model.named_parameters():  # as if trained
-            if name in missing:
-                p.normal_(0.0, 0.3)
-        moved = b @ torch.tensor(Rotation.from_euler("xyz", [120, -60, 30], degrees=True).as_matrix()).T + 0.7
-        match, match_moved = model.interact(model.encode(a, b)), model.interact(model.encode(a, moved))
-        assert not torch.allclose(match.log_w_a, base.interact(base.encode(a, b)).log_w_a, atol=1e-3)
-        assert torch.allclose(match.log_w_a, match_moved.log_w_a, atol=1e-8)
-        assert torch.allclose(match.overlap_a, match_moved.overlap_a, atol=1e-8)
-    model.train()
-    out = model(a, b)
-    (out.source_generated.square().sum() + out.overlap_logits[0].sum()).backward()
-    assert all(p.grad is not None for p in model.parameters())
-    assert all(float(p.grad.abs().sum()) > 0 for n, p in model.named_parameters() if n in missing)

@@ -71,8 +71,7 @@ class PointMixerEncoder(nn.Module):
 
     def __init__(self, cfg: ModelConfig) -> None:
         super().__init__()
-        self.gcnn = InvariantEncoder(cfg.gcnn_channels, cfg.k_neighbors, norm=cfg.norm, point_feature=cfg.point_feature,
-                                     context_layers=cfg.context_layers)
+        self.gcnn = InvariantEncoder(cfg.gcnn_channels, cfg.k_neighbors, norm=cfg.norm, point_feature=cfg.point_feature)
         if cfg.backbone == "dgcnn":
             self.mixer1: nn.Module = nn.Linear(cfg.gcnn_channels, cfg.feature_dim)
             self.mixer2: nn.Module = nn.Identity()
@@ -86,24 +85,6 @@ class PointMixerEncoder(nn.Module):
     def forward(self, points: torch.Tensor, neighbours: torch.Tensor | None = None) -> torch.Tensor:
         """neighbours: the kNN graph of `points` (B, N, k), or None to build it."""
         return self.mixer2(self.mixer1(self.gcnn(points, neighbours)))
-
-
-class CrossAttention(nn.Module):
-    """Each cloud's features attend to the other cloud's (multi-head attention on features alone, so
-    rotation-invariant; one layer shared both ways), added as a residual: f_x + Attn(f_x, f_y, f_y).
-    The output projection starts at zero, so a warm-started model starts as the one without it."""
-
-    def __init__(self, channels: int, heads: int = 4) -> None:
-        super().__init__()
-        self.attention = nn.MultiheadAttention(channels, heads, batch_first=True)
-        nn.init.zeros_(self.attention.out_proj.weight)
-        nn.init.zeros_(self.attention.out_proj.bias)
-
-    def forward(self, f_x: torch.Tensor, f_y: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """(B, N, C), (B, M, C) -> both updated, each from the other's input features."""
-        x = f_x + self.attention(f_x, f_y, f_y, need_weights=False)[0]
-        y = f_y + self.attention(f_y, f_x, f_x, need_weights=False)[0]
-        return x, y
 
 
 class SoftPointer(nn.Module):
@@ -197,7 +178,6 @@ class GenRegNet(nn.Module):
         self.pointer = SoftPointer(self.config.feature_dim, self.config.attention_dim,
                                    centred=self.config.pointer_centring)
         self.overlap = OverlapHead(self.config.feature_dim) if self.config.overlap_head else None
-        self.cross = CrossAttention(self.config.feature_dim) if self.config.cross_attention else None
 
     def encode(self, a: torch.Tensor, b: torch.Tensor) -> Encoded:
         """Stage 1: centre both clouds, per-point invariant features (one batched pass for both)."""
@@ -212,16 +192,14 @@ class GenRegNet(nn.Module):
         return Encoded(a0, b0, c_a, c_b, f_a, f_b, *graph.chunk(2, dim=0))
 
     def interact(self, enc: Encoded) -> Match:
-        """Stage 2: (with cross-attention, each cloud's features informed by the other's), log match
-        weights both ways and, with the overlap head, per-point overlap logits."""
-        f_a, f_b = (enc.f_a, enc.f_b) if self.cross is None else self.cross(enc.f_a, enc.f_b)
-        log_w_a, log_w_b = self.pointer(f_a, f_b), self.pointer(f_b, f_a)
+        """Stage 2: log match weights both ways and, with the overlap head, per-point overlap logits."""
+        log_w_a, log_w_b = self.pointer(enc.f_a, enc.f_b), self.pointer(enc.f_b, enc.f_a)
         best_a, best_b = log_w_a.argmax(dim=-1), log_w_b.argmax(dim=-1)
         if self.overlap is None:
             return Match(log_w_a, log_w_b, best_a, best_b)
         return Match(log_w_a, log_w_b, best_a, best_b,
-                     self.overlap(f_a, log_w_a, cycle_distance(best_a, best_b, enc.a0)),
-                     self.overlap(f_b, log_w_b, cycle_distance(best_b, best_a, enc.b0)))
+                     self.overlap(enc.f_a, log_w_a, cycle_distance(best_a, best_b, enc.a0)),
+                     self.overlap(enc.f_b, log_w_b, cycle_distance(best_b, best_a, enc.b0)))
 
     def generate(self, enc: Encoded, match: Match) -> GenRegOutput:
         """Stage 3: A_g (A in B's frame) and B_g (B in A's frame) from the matches."""

@@ -12,8 +12,8 @@ wherever the surfaces agree, and matching them finds correspondences at any rota
   the distance to the cloud's centroid (inputs are centred; `point_feature="centroid"`) or the mean
   distance to the k neighbours (`"knn"`: local, so cropping the cloud elsewhere leaves it unchanged).
 
-Edge MLP + max over neighbours, then edge convolutions in feature space on the same graph: the first
-gives two hops of context, each further one (residual, `context_layers`) one hop more. Output (B, N, C). Geometry is computed without gradient: the inputs are data.
+Edge MLP + max over neighbours, then one edge convolution in feature space on the same graph (two
+hops of context). Output (B, N, C). Geometry is computed without gradient: the inputs are data.
 """
 
 from __future__ import annotations
@@ -150,25 +150,15 @@ class PPFStem(nn.Module):
 
 
 class InvariantEncoder(PPFStem):
-    """PPF stem, then `context_layers` edge convolutions in feature space on the same graph: (B, N, 3)
-    centred cloud -> (B, N, out_channels), unchanged by rotating the input. The layers after the first
-    add residuals, h + EdgeConv(h); they start at zero, so a model warm-started from one with fewer
-    layers starts as that model."""
+    """PPF stem, then an edge convolution in feature space on the same graph: (B, N, 3) centred cloud
+    -> (B, N, out_channels), unchanged by rotating the input."""
 
     def __init__(self, out_channels: int, k: int, norm: str = "group", scale: float = 10.0,
-                 point_feature: str = "centroid", context_layers: int = 1) -> None:
+                 point_feature: str = "centroid") -> None:
         super().__init__(k, norm, scale, point_feature)
         self.context = EdgeConv(64, out_channels, k, norm=norm)
-        self.more_context = nn.ModuleList(EdgeConv(out_channels, out_channels, k, norm=norm)
-                                          for _ in range(context_layers - 1))
-        for layer in self.more_context:
-            nn.init.zeros_(layer.linear.weight)
-            nn.init.zeros_(layer.linear.bias)
 
     def forward(self, points: torch.Tensor, neighbours: torch.Tensor | None = None) -> torch.Tensor:
         """neighbours: the kNN graph of `points` (B, N, k), or None to build it."""
         h, neighbours, _ = self.stem(points, neighbours)
-        h = self.context(h, neighbours)
-        for layer in self.more_context:
-            h = h + layer(h, neighbours)
-        return h
+        return self.context(h, neighbours)
