@@ -29,12 +29,12 @@ REMEMBERED_QUERIES = 3  # TargetIndex.nearest answers the same points again from
 # (MODEL_CARD.md): the Gauss-Newton covariance times COVARIANCE_INFLATION (residuals of neighbouring points
 # are correlated) plus a floor of COVARIANCE_FLOOR_M (m) and COVARIANCE_FLOOR_RAD (rad) standard deviation
 # per axis (errors that no residual shows: depth distortion, the ground truth's own error).
-COVARIANCE_INFLATION = 44.7
+COVARIANCE_INFLATION = 48.5
 # pose_covariance sums its Gauss-Newton Hessian over at most this many correspondences (evenly spread over
 # the found ones) and scales it up to all of them: the target normals it needs are most of its cost.
 COVARIANCE_ROWS = 1000
-COVARIANCE_FLOOR_M = 0.0033
-COVARIANCE_FLOOR_RAD = 0.0023
+COVARIANCE_FLOOR_M = 0.0029
+COVARIANCE_FLOOR_RAD = 0.0020
 
 
 class TargetIndex:
