@@ -7,7 +7,7 @@ in again: 1,000-2,200 page faults and 3-11 ms of system time per PDSAC call at N
 machine is loaded), and a fifth to a third of a training process's CPU time in the kernel.
 `retain_freed_memory` serves every block from the heap (no mappings: glibc still maps when the heap cannot
 grow) and keeps freed memory there for reuse: after it, PDSAC runs without page faults
-(`test_memory.py`), and 15 training iterations fault 7x less (sys time 6.9 -> 1.5 s). The cost is that
+(`test_memory.py`), and 15 training iterations fault 7x less (sys time 6.9 -> 1.6 s). The cost is that
 the resident size stays at its peak instead of shrinking between registrations.
 
 `genreg-train`, `genreg-bench`, `register_node` and the benchmark scripts call it at start-up; a program

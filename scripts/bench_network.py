@@ -113,13 +113,10 @@ def one_line(exc: BaseException) -> str:
 # --- the network with the kNN graph as an input ------------------------------------------------------------
 
 def make_core(model: nn.Module) -> nn.Module:
-    """`GenRegNet.encode` / `interact` / `generate` as one module taking the kNN graph of the centred clouds
-    (2, N, k) as an input (`encode` builds it with scipy): (a, b, graph) -> the OUTPUTS tuple (the overlap
-    logits only for models with an overlap head)."""
+    """`GenRegNet.encode` / `interact` / `generate` as one module taking the kNN graph (`GenRegNet.knn_graph`)
+    as an input: (a, b, graph) -> the OUTPUTS tuple (the overlap logits only for models with an overlap
+    head)."""
     import torch
-
-    from genreg_core.model.genreg import Encoded
-    from genreg_core.model.layers import centroid
 
     class NetworkCore(torch.nn.Module):
         def __init__(self, net: nn.Module) -> None:
@@ -127,13 +124,9 @@ def make_core(model: nn.Module) -> nn.Module:
             self.net = net
 
         def forward(self, a: torch.Tensor, b: torch.Tensor, graph: torch.Tensor) -> tuple[torch.Tensor, ...]:
-            net = self.net
-            c_a, c_b = centroid(a), centroid(b)  # as in GenRegNet.encode, the graph given
-            a0, b0 = a - c_a, b - c_b
-            f_a, f_b = net.encoder(torch.cat([a0, b0], dim=0), graph).chunk(2, dim=0)
-            enc = Encoded(a0, b0, c_a, c_b, f_a, f_b, *graph.chunk(2, dim=0))
-            match = net.interact(enc)
-            out = net.generate(enc, match)
+            enc = self.net.encode(a, b, graph)
+            match = self.net.interact(enc)
+            out = self.net.generate(enc, match)
             result = (out.source_generated, out.target_generated, match.log_w_a, match.log_w_b, match.best_a,
                       match.best_b)
             if match.overlap_a is None:
@@ -141,16 +134,6 @@ def make_core(model: nn.Module) -> nn.Module:
             return (*result, match.overlap_a, match.overlap_b)
 
     return NetworkCore(model).eval()
-
-
-def knn_graph(a: torch.Tensor, b: torch.Tensor, k: int) -> torch.Tensor:
-    """The kNN graph (2, N, k) `GenRegNet.encode` builds: scipy on the centred clouds, concatenated."""
-    import torch
-
-    from genreg_core.model.gcnn import knn_indices
-    from genreg_core.model.layers import centroid
-
-    return knn_indices(torch.cat([a - centroid(a), b - centroid(b)], dim=0), k)
 
 
 def padded(outputs: Sequence[torch.Tensor | None]) -> Outputs:
@@ -242,7 +225,7 @@ def export_all(args: argparse.Namespace) -> Figures:
         model, _ = load_checkpoint(name, num_points=NUM_POINTS)
         core = make_core(model)
         a, b = prepared_inputs(model, pairs)[0]
-        example = (a, b, knn_graph(a, b, model.config.k_neighbors))
+        example = (a, b, model.knn_graph(a, b))
         entry: Figures = {}
         try:
             if n == 0:  # the plain export: does onnxruntime run it?
@@ -299,7 +282,6 @@ def build_runners(model: nn.Module, threads: int, onnx: Figures | None, options:
     always) and a note per option (setup figures or why it is missing)."""
     import torch
 
-    k = model.config.k_neighbors
     core = make_core(model)
     runners: dict[str, Runner] = {}
     notes: dict[str, str] = {}
@@ -321,7 +303,7 @@ def build_runners(model: nn.Module, threads: int, onnx: Figures | None, options:
 
     def compiled_run(a: torch.Tensor, b: torch.Tensor) -> Outputs:
         with torch.no_grad():
-            return padded(compiled(a, b, knn_graph(a, b, k)))
+            return padded(compiled(a, b, model.knn_graph(a, b)))
 
     runners["torch.compile (inductor)"] = compiled_run
     runners["bf16 autocast"] = bf16
@@ -341,7 +323,7 @@ def build_runners(model: nn.Module, threads: int, onnx: Figures | None, options:
     inputs = [i.name for i in session.get_inputs()]
 
     def ort_run(a: torch.Tensor, b: torch.Tensor) -> Outputs:
-        graph = knn_graph(a, b, k)
+        graph = model.knn_graph(a, b)
         feed = dict(zip(inputs, (a.numpy(), b.numpy(), graph.numpy()), strict=True))
         return padded([torch.from_numpy(x) for x in session.run(None, feed)])
 

@@ -179,15 +179,21 @@ class GenRegNet(nn.Module):
                                    centred=self.config.pointer_centring)
         self.overlap = OverlapHead(self.config.feature_dim) if self.config.overlap_head else None
 
-    def encode(self, a: torch.Tensor, b: torch.Tensor) -> Encoded:
-        """Stage 1: centre both clouds, per-point invariant features (one batched pass for both)."""
+    def knn_graph(self, a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+        """The kNN graph `encode` uses: (2B, N, k) over the centred clouds, A's batch first (scipy, outside
+        torch's graph: compiled or exported networks take it as an input)."""
+        return knn_indices(torch.cat([a - centroid(a), b - centroid(b)], dim=0), self.config.k_neighbors)
+
+    def encode(self, a: torch.Tensor, b: torch.Tensor, graph: torch.Tensor | None = None) -> Encoded:
+        """Stage 1: centre both clouds, per-point invariant features (one batched pass for both).
+        graph: `knn_graph(a, b)` if already built, else None to build it."""
         n = self.config.num_points
         if a.shape[1] != n or b.shape[1] != n:
             raise ValueError(f"GenRegNet expects {n} points, got {a.shape[1]} and {b.shape[1]}")
         c_a, c_b = centroid(a), centroid(b)
         a0, b0 = a - c_a, b - c_b
         centred = torch.cat([a0, b0], dim=0)
-        graph = knn_indices(centred, self.config.k_neighbors)
+        graph = knn_indices(centred, self.config.k_neighbors) if graph is None else graph
         f_a, f_b = self.encoder(centred, graph).chunk(2, dim=0)
         return Encoded(a0, b0, c_a, c_b, f_a, f_b, *graph.chunk(2, dim=0))
 
