@@ -260,6 +260,9 @@ def test_knn_point_feature_ignores_a_crop_elsewhere():
 
 LOCAL_GN = ModelConfig(num_points=64, k_neighbors=8, gcnn_channels=16, feature_dim=16, backbone="dgcnn",
                        point_feature="knn", generation="neighbours", generation_k=6, overlap_head=True)
+LOCAL_NONE = ModelConfig(num_points=64, k_neighbors=8, gcnn_channels=16, feature_dim=16, backbone="dgcnn",
+                         point_feature="knn", generation="neighbours", generation_k=6, overlap_head=True,
+                         norm="none", pointer_centring=False)
 
 
 def _group_moments(model: torch.nn.Module, cloud: torch.Tensor) -> dict:
@@ -318,3 +321,22 @@ def test_statistics_free_features_ignore_a_crop_elsewhere_and_groupnorm_features
             full, part = model.encoder(pts - pts.mean(1, keepdim=True)), model.encoder(pts[:, keep] - pts[:, keep].mean(1, keepdim=True))
             same = torch.allclose(full[0, keep][inner], part[0, inner], atol=1e-5)
         assert same == local, norm
+
+
+def test_widening_keeps_the_function_and_the_new_channels_can_learn():
+    from genreg_core.model.fold import widen
+
+    torch.manual_seed(0)
+    model = GenRegNet(LOCAL_NONE).eval()
+    wide = widen(model, 2 * LOCAL_NONE.gcnn_channels, 2 * LOCAL_NONE.feature_dim)
+    assert wide.encoder.mixer1.weight.shape == (2 * LOCAL_NONE.feature_dim, 2 * LOCAL_NONE.gcnn_channels)
+    a, b = torch.rand(2, 64, 3), torch.rand(2, 64, 3)
+    with torch.no_grad():
+        ref, out = model(a, b), wide(a, b)
+    assert torch.allclose(ref.match_logits[0], out.match_logits[0], atol=1e-5)
+    assert torch.allclose(ref.overlap_logits[0], out.overlap_logits[0], atol=1e-5)
+    wide.train()
+    wide(a, b).match_logits[0].max(dim=-1).values.sum().backward()
+    assert wide.pointer.query.weight.grad[:, LOCAL_NONE.feature_dim:].abs().sum() > 0
+    with pytest.raises(CheckpointError, match="cannot narrow"):
+        widen(model, LOCAL_NONE.gcnn_channels // 2, LOCAL_NONE.feature_dim)

@@ -61,3 +61,43 @@ def fold_statistics(model: GenRegNet, stats: NormStatistics) -> GenRegNet:
     folded = GenRegNet(dataclasses.replace(cfg, norm="none", pointer_centring=False))
     folded.load_state_dict(state)
     return folded.eval()
+
+
+def widen(model: GenRegNet, gcnn_channels: int, feature_dim: int, seed: int = 0) -> GenRegNet:
+    """A wider copy of a statistics-free "dgcnn" GenRegNet that computes the same function (Net2Net-style:
+    each new channel gets random incoming weights and zero outgoing weights), the warm start for the
+    capacity lever of issue 13. The edge convolution gets `gcnn_channels` outputs and the linear layer
+    after it `feature_dim`; the PPF stem and the pointer's width stay. CheckpointError for other models or
+    narrower widths."""
+    cfg = model.config
+    if not isinstance(model, GenRegNet) or cfg.backbone != "dgcnn" or cfg.norm != "none":
+        raise CheckpointError("widen needs a statistics-free genreg model with backbone dgcnn")
+    c0, f0 = cfg.gcnn_channels, cfg.feature_dim
+    if gcnn_channels < c0 or feature_dim < f0:
+        raise CheckpointError(f"widen cannot narrow: {c0}, {f0} -> {gcnn_channels}, {feature_dim}")
+    wide = GenRegNet(dataclasses.replace(cfg, gcnn_channels=gcnn_channels, feature_dim=feature_dim))
+    generator = torch.Generator().manual_seed(seed)
+    old = {k: v.detach() for k, v in model.state_dict().items()}
+    state = {k: v.detach().clone() for k, v in wide.state_dict().items()}
+
+    def fresh(shape: tuple[int, ...], like: torch.Tensor) -> torch.Tensor:
+        return torch.randn(shape, generator=generator) * like.std()
+
+    ctx, mix = "encoder.gcnn.context.linear", "encoder.mixer1"
+    w = old[f"{ctx}.weight"]  # (c0, 2 * 64): new output rows, random
+    state[f"{ctx}.weight"] = torch.cat([w, fresh((gcnn_channels - c0, w.shape[1]), w)])
+    state[f"{ctx}.bias"] = torch.cat([old[f"{ctx}.bias"], torch.zeros(gcnn_channels - c0)])
+    w = old[f"{mix}.weight"]  # (f0, c0): new input columns zero, new output rows random
+    top = torch.cat([w, torch.zeros(f0, gcnn_channels - c0)], dim=1)
+    state[f"{mix}.weight"] = torch.cat([top, fresh((feature_dim - f0, gcnn_channels), w)])
+    state[f"{mix}.bias"] = torch.cat([old[f"{mix}.bias"], torch.zeros(feature_dim - f0)])
+    for name in ("pointer.query", "pointer.key", "overlap.mlp.0"):  # inputs [features, (extra)]: zero columns
+        if f"{name}.weight" not in old:
+            continue
+        w = old[f"{name}.weight"]
+        state[f"{name}.weight"] = torch.cat([w[:, :f0], torch.zeros(w.shape[0], feature_dim - f0), w[:, f0:]], dim=1)
+    for key, value in old.items():
+        if not key.startswith((ctx, mix, "pointer.query.weight", "pointer.key.weight", "overlap.mlp.0.weight")):
+            state[key] = value.clone()
+    wide.load_state_dict(state)
+    return wide.eval()
