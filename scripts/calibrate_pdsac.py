@@ -38,6 +38,8 @@ def main() -> int:
     p.add_argument("--kinds", nargs="+", choices=KINDS, default=list(KINDS))
     p.add_argument("--threads", type=int, default=1)
     p.add_argument("--checkpoints", nargs="+", help="checkpoints to compare in place of each kind's own")
+    p.add_argument("--scene-pairs", type=int, default=40, help="kidnap30 / kidnap60 / gap10: pairs (the first 40 "
+                   "are the default set)")
     p.add_argument("--crop-seed", type=int, default=2, help="crop: the pairs' seed (another set of training crops)")
     args = p.parse_args()
     from genreg_core.bench.cli import configure_threads
@@ -57,14 +59,14 @@ def main() -> int:
         """(checkpoint, [(source, target, T_gt)], PDSAC seeds) for a kind."""
         if kind == "gap10":
             seq, rng = RGBDSequence.redkitchen(), np.random.default_rng(11)
-            starts = [int(rng.integers(0, 790)) for _ in range(40)]
+            starts = [int(rng.integers(0, 790)) for _ in range(args.scene_pairs)]
             return "7scenes", [(seq.points(i + 10, stride=2), seq.points(i, stride=2), seq.relative_pose(i + 10, i))
                                for i in starts], (0,)
         if kind.startswith("kidnap"):
             gap, seq = int(kind[6:]), RGBDSequence.redkitchen()
             rng = np.random.default_rng(7 if gap == 30 else 8)
             items = []
-            for _ in range(40):
+            for _ in range(args.scene_pairs):
                 i = int(rng.integers(0, 800 - gap))
                 src, tgt = seq.points(i + gap, stride=2), seq.points(i, stride=2)
                 K = kidnap_motion(rng, src.mean(axis=0))

@@ -134,19 +134,22 @@ class PPFStem(nn.Module):
             neighbours = knn_indices(points, self.k)
         edge, point, normals = invariant_geometry(points, neighbours)
         point = point_inputs(point, edge, self.point_feature, self.scale)
-        h = per_cloud(self.edge_max, self.scaled(edge))  # (B, 64, N)
+        if not torch.is_grad_enabled():  # the same values on channels-last rows (`PointMLP.forward_rows`)
+            h = per_cloud(self.edge_max_rows, self.scaled(edge))  # (B, N, 64)
+            return self.point_mlp.forward_rows(torch.cat([h, point], dim=-1)), neighbours, normals
+        h = self.edge_max(self.scaled(edge))  # (B, 64, N)
         h = self.point_mlp(torch.cat([h, point.transpose(1, 2)], dim=1)).transpose(1, 2)  # (B, N, 64)
         return h, neighbours, normals
 
     def edge_max(self, edge: torch.Tensor) -> torch.Tensor:
         """Edge MLP on the scaled PPF (B, N, k, 4), max over the k neighbours -> (B, 64, N)."""
         B, N, k, _ = edge.shape
-        edge = edge.reshape(B, N * k, 4).transpose(1, 2)  # (B, 4, N k)
-        if torch.is_grad_enabled():
-            return self.edge_mlp(edge).reshape(B, -1, N, k).amax(dim=-1)
-        # the same values: the final ReLU after the max (they commute) runs on N columns instead of N k
-        h = self.edge_mlp.forward_inplace(edge, last_activation=False)
-        return h.reshape(B, -1, N, k).amax(dim=-1).relu_()
+        return self.edge_mlp(edge.reshape(B, N * k, 4).transpose(1, 2)).reshape(B, -1, N, k).amax(dim=-1)
+
+    def edge_max_rows(self, edge: torch.Tensor) -> torch.Tensor:
+        """`edge_max` without gradient, channels last -> (B, N, 64). The final ReLU runs after the max
+        (they commute), on N rows instead of N k."""
+        return self.edge_mlp.forward_rows(edge, last_activation=False).amax(dim=2).relu_()
 
 
 class InvariantEncoder(PPFStem):
