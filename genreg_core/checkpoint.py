@@ -50,7 +50,8 @@ def save_checkpoint(
 def load_checkpoint(
     name_or_path: str | os.PathLike, num_points: int | None = None, device: str = "cpu"
 ) -> tuple[nn.Module, dict[str, Any]]:
-    """Load a generator in eval mode (float32). `num_points`, if given, must match the model's N."""
+    """Load a generator in eval mode (float32). `num_points`, if given, must match the model's N, except for
+    backbone "dgcnn", which runs at any N."""
     path = resolve_checkpoint(name_or_path)
     try:
         blob = torch.load(path, map_location="cpu", weights_only=True)
@@ -62,6 +63,8 @@ def load_checkpoint(
         cfg = from_dict(ModelConfig, blob["model_config"])
     except (ConfigError, KeyError, TypeError) as exc:
         raise CheckpointError(f"checkpoint {path} has an invalid model config: {exc}") from None
+    if num_points is not None and cfg.num_points != num_points and cfg.backbone == "dgcnn" and cfg.architecture == "genreg":
+        cfg = dataclasses.replace(cfg, num_points=num_points)  # no token mixing: the same weights at any N
     if num_points is not None and cfg.num_points != num_points:
         raise CheckpointError(
             f"checkpoint {path} was built for N={cfg.num_points} points, but N={num_points} was requested"

@@ -40,6 +40,7 @@ def main() -> int:
     p.add_argument("--checkpoints", nargs="+", help="checkpoints to compare in place of each kind's own")
     p.add_argument("--scene-pairs", type=int, default=40, help="kidnap30 / kidnap60 / gap10: pairs (the first 40 "
                    "are the default set)")
+    p.add_argument("--num-points", type=int, help="N for the checkpoints (statistics-free models run at any N)")
     p.add_argument("--crop-seed", type=int, default=2, help="crop: the pairs' seed (another set of training crops)")
     args = p.parse_args()
     from genreg_core.bench.cli import configure_threads
@@ -99,7 +100,7 @@ def main() -> int:
                     cfg = RegistrationConfig(seed=seed, refine=RefineConfig(method=method),
                                              pdsac=PDSACConfig(num_hypotheses=int(m), sample_size=int(k),
                                                                local_candidates=int(local), refit_tightening=tightening))
-                    registrar = Registrar.from_checkpoint(checkpoint, cfg)
+                    registrar = Registrar.from_checkpoint(checkpoint, cfg, num_points=args.num_points)
                     errors += [transform_errors(registrar.register(s, t).transformation, T)
                                for s, t, T in tqdm(items, desc=f"{kind} {setting} {method}", leave=False)]
                 e = np.array(errors)

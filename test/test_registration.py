@@ -65,6 +65,22 @@ def test_checkpoint_problems_raise_checkpoint_error(untrained, tmp_path):
         Registrar.from_checkpoint(untrained, num_points=1024)
 
 
+def test_a_dgcnn_model_runs_at_another_n_with_its_own_weights():
+    """No token mixing: the statistics-free models load at any N with the same weights, and still register
+    (a clean unseen-category pair of 1024 points, its ground truth as the truth)."""
+    from genreg_core.data import ModelNetPairs, load_modelnet40
+
+    small, _ = load_checkpoint("modelnet40_partial")
+    reg = Registrar.from_checkpoint("modelnet40_partial", num_points=768)
+    assert reg.num_points == 768
+    assert all(torch.equal(x, y) for x, y in zip(small.state_dict().values(), reg.model.state_dict().values(), strict=True))
+    item = ModelNetPairs(load_modelnet40("test", "unseen"), 1024, "clean", seed=3)[0]
+    re, _ = transform_errors(reg.register(item["source"], item["target"]).transformation, item["transform"])
+    assert re < 5.0
+    with pytest.raises(CheckpointError, match="N=512"):
+        Registrar.from_checkpoint("modelnet40", num_points=768)  # token mixing fixes N
+
+
 def test_units_and_direction_with_refinement_in_metres(untrained):
     """A 20 m-scale cloud with a small known motion: result maps source into target, in metres."""
     src = _shape(4000) * 10.0 + np.array([100.0, -50.0, 3.0])

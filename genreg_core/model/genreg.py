@@ -163,8 +163,9 @@ class OverlapHead(nn.Module):
         self.scale = scale
         self.mlp = mlp((channels + 2, hidden, 1))
 
-    def forward(self, f: torch.Tensor, log_w: torch.Tensor, cycle: torch.Tensor) -> torch.Tensor:
-        best = log_w.amax(dim=-1, keepdim=True) + torch.log(torch.tensor(float(log_w.shape[-1])))
+    def forward(self, f: torch.Tensor, best_log_w: torch.Tensor, candidates: int, cycle: torch.Tensor) -> torch.Tensor:
+        """f (B, N, C), each point's largest log match weight (B, N) over `candidates` points, cycle (B, N)."""
+        best = best_log_w[..., None] + torch.log(torch.tensor(float(candidates)))
         return self.mlp(torch.cat([f, best, self.scale * cycle[..., None]], dim=-1))[..., 0]
 
 
@@ -200,12 +201,12 @@ class GenRegNet(nn.Module):
     def interact(self, enc: Encoded) -> Match:
         """Stage 2: log match weights both ways and, with the overlap head, per-point overlap logits."""
         log_w_a, log_w_b = self.pointer(enc.f_a, enc.f_b), self.pointer(enc.f_b, enc.f_a)
-        best_a, best_b = log_w_a.argmax(dim=-1), log_w_b.argmax(dim=-1)
+        (top_a, best_a), (top_b, best_b) = log_w_a.max(dim=-1), log_w_b.max(dim=-1)  # one pass: value and index
         if self.overlap is None:
             return Match(log_w_a, log_w_b, best_a, best_b)
         return Match(log_w_a, log_w_b, best_a, best_b,
-                     self.overlap(enc.f_a, log_w_a, cycle_distance(best_a, best_b, enc.a0)),
-                     self.overlap(enc.f_b, log_w_b, cycle_distance(best_b, best_a, enc.b0)))
+                     self.overlap(enc.f_a, top_a, log_w_a.shape[-1], cycle_distance(best_a, best_b, enc.a0)),
+                     self.overlap(enc.f_b, top_b, log_w_b.shape[-1], cycle_distance(best_b, best_a, enc.b0)))
 
     def generate(self, enc: Encoded, match: Match) -> GenRegOutput:
         """Stage 3: A_g (A in B's frame) and B_g (B in A's frame) from the matches."""
