@@ -26,6 +26,7 @@ from genreg_core.registration import Registrar
 @pytest.fixture(scope="module")
 def untrained(tmp_path_factory):
     path = tmp_path_factory.mktemp("ckpt") / "untrained.pt"
+    torch.manual_seed(0)  # the same weights whatever ran before in the session
     save_checkpoint(GenRegNet(SMALL), path)
     return path
 
