@@ -30,8 +30,7 @@ def main() -> int:
     from genreg_core.data import load_modelnet40
     from genreg_core.model.fold import widen
 
-    model, meta = load_checkpoint(args.checkpoint)
-    model = model.float().eval()
+    model, meta = load_checkpoint(args.checkpoint)  # float32, eval mode
     wide = widen(model, args.gcnn_channels, args.feature_dim)
     item = RPMNetPairs(load_modelnet40("train", "seen"), seed=5)[0]
     n = model.config.num_points

@@ -78,7 +78,7 @@ def widen(model: GenRegNet, gcnn_channels: int, feature_dim: int, seed: int = 0)
     wide = GenRegNet(dataclasses.replace(cfg, gcnn_channels=gcnn_channels, feature_dim=feature_dim))
     generator = torch.Generator().manual_seed(seed)
     old = {k: v.detach() for k, v in model.state_dict().items()}
-    state = {k: v.detach().clone() for k, v in wide.state_dict().items()}
+    state = {k: v.clone() for k, v in old.items()}  # every tensor as it was, but those widened below
 
     def fresh(shape: tuple[int, ...], like: torch.Tensor) -> torch.Tensor:
         return torch.randn(shape, generator=generator) * like.std()
@@ -96,8 +96,5 @@ def widen(model: GenRegNet, gcnn_channels: int, feature_dim: int, seed: int = 0)
             continue
         w = old[f"{name}.weight"]
         state[f"{name}.weight"] = torch.cat([w[:, :f0], torch.zeros(w.shape[0], feature_dim - f0), w[:, f0:]], dim=1)
-    for key, value in old.items():
-        if not key.startswith((ctx, mix, "pointer.query.weight", "pointer.key.weight", "overlap.mlp.0.weight")):
-            state[key] = value.clone()
     wide.load_state_dict(state)
     return wide.eval()
