@@ -22,7 +22,8 @@ from __future__ import annotations
 
 import os
 import time
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -54,6 +55,20 @@ GUESS_MARGIN = 0.02
 # refinement could not earn its move; an exact guess on SUN3D gains 0.02 there from GICP's ~1 deg slide).
 REFINED_GUESS_MARGIN = 0.05
 
+
+
+@contextmanager
+def torch_threads(n: int) -> Iterator[None]:
+    """Torch's intra-op thread count at n inside the block (0: as it is), restored after (process-wide)."""
+    previous = torch.get_num_threads()
+    change = 0 < n != previous
+    if change:
+        torch.set_num_threads(n)
+    try:
+        yield
+    finally:
+        if change:
+            torch.set_num_threads(previous)
 
 @dataclass
 class RegistrationResult:
@@ -154,13 +169,14 @@ class Registrar:
         config's, for inputs already in the unit box); seconds of the network and of PDSAC are added to
         `timings` ('network', 'pdsac') if given."""
         pdsac = pdsac or model_frame_config(self.config, 1.0).pdsac
-        t0 = time.perf_counter()
-        enc = self.model.encode(a, b)  # 2. encode
-        match = self.model.interact(enc)  # 3. interact
-        out = self.model.generate(enc, match)  # 4. generate
-        t1 = time.perf_counter()
-        T, _, _, inliers = pdsac_bidirectional(  # 5. PDSAC
-            a, out.source_generated, b, out.target_generated, pdsac, generator, out.overlap())
+        with torch_threads(self.config.estimate_threads):
+            t0 = time.perf_counter()
+            enc = self.model.encode(a, b)  # 2. encode
+            match = self.model.interact(enc)  # 3. interact
+            out = self.model.generate(enc, match)  # 4. generate
+            t1 = time.perf_counter()
+            T, _, _, inliers = pdsac_bidirectional(  # 5. PDSAC
+                a, out.source_generated, b, out.target_generated, pdsac, generator, out.overlap())
         if timings is not None:
             timings["network"] = timings.get("network", 0.0) + t1 - t0
             timings["pdsac"] = timings.get("pdsac", 0.0) + time.perf_counter() - t1

@@ -122,6 +122,24 @@ def test_same_seed_same_result(untrained):
     assert np.array_equal(reg.register(src, tgt).transformation, reg.register(src, tgt).transformation)
 
 
+def test_estimate_threads_change_the_speed_not_the_result_and_torch_gets_its_threads_back():
+    """The network and PDSAC at one thread (the default) or at torch's own count give the same pose on a
+    known transform of a shipped model's input, and the caller's thread count is restored."""
+    from genreg_core.data import ModelNetPairs, load_modelnet40
+
+    pair = ModelNetPairs(load_modelnet40("test", "unseen"), 512, seed=0)[0]  # unseen category, known transform
+    src, tgt, truth = pair["source"], pair["target"], pair["transform"]
+    before = torch.get_num_threads()
+    poses = [Registrar.from_checkpoint("modelnet40", RegistrationConfig(estimate_threads=n),
+                                     num_points=512).register(src, tgt)
+             .transformation for n in (1, 0, 2)]
+    assert torch.get_num_threads() == before
+    for pose in poses:
+        rotation_error, translation_error = transform_errors(pose, truth)
+        assert rotation_error < 1.0 and translation_error < 0.02
+    assert np.allclose(poses[0], poses[1], atol=1e-4) and np.allclose(poses[0], poses[2], atol=1e-4)
+
+
 def test_shipped_scene_model_registers_a_real_300k_point_pair():
     """The shipped `7scenes` model on a full-resolution redkitchen validation pair (frames 810 -> 800, about
     270k points each) against the ground-truth poses: proper, accurate, every finite point aligned."""
