@@ -56,7 +56,6 @@ GUESS_MARGIN = 0.02
 REFINED_GUESS_MARGIN = 0.05
 
 
-
 @contextmanager
 def torch_threads(n: int) -> Iterator[None]:
     """Torch's intra-op thread count at n inside the block (0: as it is), restored after (process-wide)."""
@@ -69,6 +68,7 @@ def torch_threads(n: int) -> Iterator[None]:
     finally:
         if change:
             torch.set_num_threads(previous)
+
 
 @dataclass
 class RegistrationResult:

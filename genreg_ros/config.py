@@ -51,13 +51,12 @@ DURABILITIES = ("volatile", "transient_local")
 
 @dataclass(frozen=True)
 class ModelParams:
-    """Which network the node loads, and its threads."""
+    """Which network the node loads (its threads: `registration.estimate_threads`)."""
 
     checkpoint: str = setting("modelnet40", "Shipped model name (modelnet40, modelnet40_dgcnn, 7scenes) or a "
                               ".pt checkpoint path.", start_up=True)
     num_points: int = setting(0, "Expected model N (points per cloud fed to the network); 0 accepts the "
                               "checkpoint's N.", low=0, high=65536, start_up=True)
-    num_threads: int = setting(0, "Torch CPU threads; 0 keeps torch's default.", low=0, high=256, start_up=True)
 
     def __post_init__(self) -> None:
         check_ranges(self, "model.")

@@ -317,10 +317,6 @@ class RegisterNode(LifecycleNode):
     def _load_registrar(self, c: NodeConfig):
         from genreg_core.registration import Registrar
 
-        if c.model.num_threads > 0:
-            import torch
-
-            torch.set_num_threads(c.model.num_threads)
         try:
             return Registrar.from_checkpoint(c.model.checkpoint, config=c.registration_config(),
                                              num_points=c.model.num_points or None)

@@ -48,7 +48,7 @@ TEST_PARAMS = {  # fast settings for 2 shared cores
     "pdsac.num_hypotheses": 64,
     "refine.max_iterations": 30,
     "refine.num_points": 2000,
-    "model.num_threads": 1,
+    "registration.estimate_threads": 1,
     "diagnostics.period": 0.2,
     "min_confidence": 0.0,  # plumbing tests use untrained models and synthetic clouds: publish everything
     "warn_confidence": 0.0,  # ... without low-confidence warnings (a test that wants them sets it)
