@@ -22,7 +22,7 @@ setup(
         (f"share/{PACKAGE}/launch", glob("launch/*.launch.py")),
     ],
     install_requires=[
-        "setuptools", "numpy", "scipy", "torch", "open3d", "small_gicp", "rosbags", "pyyaml", "tqdm", "pillow",
+        "setuptools", "numpy", "scipy", "numba", "torch", "open3d", "small_gicp", "rosbags", "pyyaml", "tqdm", "pillow",
         "matplotlib",
     ],
     zip_safe=False,

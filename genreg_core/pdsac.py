@@ -166,34 +166,15 @@ def hypothesis_residuals(T: torch.Tensor, src: torch.Tensor, dst: torch.Tensor) 
 
     Equal to `residuals(T, src[:, None], dst[:, None])`, as one matrix product of the stacked [R_h | t_h]
     (B, 3m, 4) with the homogeneous points (B, 4, N): 2.2 ms against 7.8 ms for the broadcast form at
-    m = N = 512 on 2 CPU threads.
+    m = N = 512 on 2 CPU threads. Training's form; inference scores with `kernels.truncated_scores`.
     """
     B, m = T.shape[:2]
     homogeneous = torch.cat([src, torch.ones_like(src[..., :1])], dim=-1).transpose(1, 2)  # (B, 4, N)
-    if not (torch.is_grad_enabled() and (T.requires_grad or src.requires_grad or dst.requires_grad)):
-        return _hypothesis_residuals_inplace(T, homogeneous, dst)
     moved = (T[..., :3, :].reshape(B, 3 * m, 4) @ homogeneous).reshape(B, m, 3, -1)
     d = moved - dst.transpose(1, 2)[:, None]
     # three contiguous (B, m, N) planes: a norm over the middle axis is ~30x slower on CPU. The clamp
     # keeps the gradient finite (zero) at a zero residual, as torch.linalg.norm's is.
     return (d[:, :, 0].square() + d[:, :, 1].square() + d[:, :, 2].square()).clamp_min(1e-30).sqrt()
-
-
-def _hypothesis_residuals_inplace(T: torch.Tensor, homogeneous: torch.Tensor, dst: torch.Tensor, chunk: int = 64
-                                  ) -> torch.Tensor:
-    """`hypothesis_residuals` without gradient, the same values: `chunk` hypotheses at a time and in place,
-    so the (chunk, 3, N) temporaries stay in cache (0.5 MB at N = 512, against 3 MB a direction at once),
-    the target planes contiguous (a broadcast of the strided transpose is not vectorised). 3.1 ms against
-    4.3 ms for both directions at m = N = 512 on 1 CPU thread."""
-    B, m = T.shape[:2]
-    rows, target = T[..., :3, :], dst.transpose(1, 2).contiguous()[:, None]  # (B, m, 3, 4), (B, 1, 3, N)
-    out = torch.empty(B, m, dst.shape[1], dtype=dst.dtype, device=dst.device)
-    for i in range(0, m, chunk):
-        j = min(m, i + chunk)
-        d = (rows[:, i:j].reshape(B, 3 * (j - i), 4) @ homogeneous).reshape(B, j - i, 3, -1)
-        d = d.sub_(target).square_()
-        torch.add(d[:, :, 0], d[:, :, 1], out=out[:, i:j]).add_(d[:, :, 2])
-    return out.clamp_min_(1e-30).sqrt_()
 
 
 def pdsac(
@@ -221,15 +202,26 @@ def pdsac(
     s = torch.gather(src, 1, flat).reshape(B, m, k, 3)
     d = torch.gather(dst, 1, flat).reshape(B, m, k, 3)
     hyps = batch_in_threads(kabsch, s, d, dim=1)  # (B, m, 4, 4), the hypotheses in parts on 2+ threads
-    res = hypothesis_residuals(hyps, src, dst)  # (B, m, N)
-    scores = truncated_score(res, cfg.tau, weights)
+    if recording(hyps, src, dst, weights) or src.device.type != "cpu":
+        scores = truncated_score(hypothesis_residuals(hyps, src, dst), cfg.tau, weights)  # (B, m, N) -> (B, m)
+    else:  # inference: compiled, without the (B, m, N) residual table
+        from genreg_core.kernels import truncated_scores
+
+        rows = [x.transpose(1, 2).contiguous().numpy() for x in (src, dst)]
+        w = (torch.ones(B, N, dtype=src.dtype) if weights is None else weights.to(src.dtype)).contiguous()
+        scores = torch.from_numpy(truncated_scores(hyps.contiguous().numpy(), *rows, w.numpy(), cfg.tau))
     selection = torch.softmax(-scores / cfg.temperature, dim=-1)
     best = scores.argmin(dim=-1)
     T = hyps[torch.arange(B), best]
-    inliers = res[torch.arange(B), best] < cfg.tau
+    inliers = residuals(T, src, dst) < cfg.tau
     if cfg.refit if refit is None else refit:
         T, inliers = refit_on_inliers(T, src, dst, cfg.tau)
     return PDSACResult(T, hyps, scores, selection, inliers)
+
+
+def recording(*tensors: torch.Tensor | None) -> bool:
+    """Whether autograd records an operation on any of these tensors."""
+    return torch.is_grad_enabled() and any(x is not None and x.requires_grad for x in tensors)
 
 
 def truncated_score(res: torch.Tensor, threshold: float, weights: torch.Tensor | None = None) -> torch.Tensor:

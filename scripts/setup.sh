@@ -17,7 +17,7 @@ if [ ! -f "$STAMP" ] || [ "$(cat "$STAMP")" != "$REQ_HASH" ]; then
   pip install -q --upgrade pip
   # torch pinned: the CPU wheel on local disk (a bare 'torch' pulls a multi-GB CUDA build).
   pip install -q torch==2.13.0
-  pip install -q numpy scipy open3d small_gicp kiss-matcher rosbags mcap tqdm matplotlib pytest ruff pyyaml pillow \
+  pip install -q numpy scipy numba open3d small_gicp kiss-matcher rosbags mcap tqdm matplotlib pytest ruff pyyaml pillow \
     colcon-common-extensions
   pip install -q ros-kilted-rclpy ros-kilted-rmw-fastrtps-cpp ros-kilted-sensor-msgs \
     ros-kilted-geometry-msgs ros-kilted-diagnostic-msgs ros-kilted-lifecycle-msgs ros-kilted-rcl-lifecycle \

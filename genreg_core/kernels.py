@@ -1,0 +1,178 @@
+"""Compiled inner loops of PDSAC's inference (numba; no gradient, CPU, one thread each, the GIL released).
+
+PDSAC fits and scores thousands of tiny problems: 1,024 minimal sets of 3-4 correspondences, then each
+hypothesis against all 1,024 correspondences. In torch each is a few hundred small tensor operations or a
+batched LAPACK call that solves one 3x3 matrix after another, so their cost was dispatch, not arithmetic
+(an SVD of 1,024 3x3 matrices: 2 ms; scoring 2 x 512 hypotheses: 2 ms and a 2 MB residual table). Here each
+problem is one pass of scalar code:
+
+- `fit_rigid`: the weighted least-squares rigid transform of each set (Kabsch's problem: target ~ R source + t,
+  det R = +1), by Horn's quaternion method in Theobald's QCP form. R is the rotation of the unit quaternion
+  that is the top eigenvector of the symmetric, traceless 4x4 key matrix K of the cross-covariance; its top
+  eigenvalue is the largest root of det(K - x I) = x^4 + c2 x^2 + c1 x + c0, which Newton's method reaches
+  monotonically from the upper bound (sum of both spreads) / 2; the eigenvector is the longest row of the
+  adjugate of K - x I. Float64 inside. Sets whose top eigenvalue repeats (collinear or coinciding points)
+  get one of their equally good rotations, or identity when the adjugate vanishes, as the SVD picks
+  arbitrarily there.
+- `truncated_scores`: s_h = sum_i w_i min(|R_h src_i + t_h - dst_i|, tau) / sum_i w_i without storing the
+  residuals.
+
+`geometry.kabsch` and `pdsac` call them when no gradient is recorded; training keeps the torch forms.
+Compiled on first use and cached beside this file (numba's `cache`).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit
+
+_OPTIONS = {"cache": True, "nogil": True, "fastmath": False}
+
+
+@njit(**_OPTIONS)
+def _cross4(a: np.ndarray, b: np.ndarray, c: np.ndarray, out: np.ndarray) -> None:
+    """out = the generalised cross product of three 4-vectors (orthogonal to each: the cofactor expansion
+    of det[e; a; b; c] along its first row)."""
+    m01, m02, m03 = b[0] * c[1] - b[1] * c[0], b[0] * c[2] - b[2] * c[0], b[0] * c[3] - b[3] * c[0]
+    m12, m13, m23 = b[1] * c[2] - b[2] * c[1], b[1] * c[3] - b[3] * c[1], b[2] * c[3] - b[3] * c[2]
+    out[0] = a[1] * m23 - a[2] * m13 + a[3] * m12
+    out[1] = -a[0] * m23 + a[2] * m03 - a[3] * m02
+    out[2] = a[0] * m13 - a[1] * m03 + a[3] * m01
+    out[3] = -a[0] * m12 + a[1] * m02 - a[2] * m01
+
+
+@njit(**_OPTIONS)
+def _fit_one(src: np.ndarray, dst: np.ndarray, w: np.ndarray, out: np.ndarray) -> None:
+    """The weighted rigid fit of one set src (K, 3) -> dst (K, 3) into out (4, 4) (module docstring)."""
+    K = src.shape[0]
+    total = 0.0
+    ms, md = np.zeros(3), np.zeros(3)
+    for i in range(K):
+        wi = max(float(w[i]), 0.0)
+        total += wi
+        for a in range(3):
+            ms[a] += wi * src[i, a]
+            md[a] += wi * dst[i, a]
+    out[:] = 0.0
+    for a in range(4):
+        out[a, a] = 1.0
+    if not total > 0.0:
+        return
+    ms /= total
+    md /= total
+    S = np.zeros((3, 3))
+    spread = 0.0
+    for i in range(K):
+        wi = max(float(w[i]), 0.0) / total
+        s0, s1, s2 = src[i, 0] - ms[0], src[i, 1] - ms[1], src[i, 2] - ms[2]
+        d0, d1, d2 = dst[i, 0] - md[0], dst[i, 1] - md[1], dst[i, 2] - md[2]
+        spread += wi * (s0 * s0 + s1 * s1 + s2 * s2 + d0 * d0 + d1 * d1 + d2 * d2)
+        S[0, 0] += wi * s0 * d0
+        S[0, 1] += wi * s0 * d1
+        S[0, 2] += wi * s0 * d2
+        S[1, 0] += wi * s1 * d0
+        S[1, 1] += wi * s1 * d1
+        S[1, 2] += wi * s1 * d2
+        S[2, 0] += wi * s2 * d0
+        S[2, 1] += wi * s2 * d1
+        S[2, 2] += wi * s2 * d2
+    sxx, sxy, sxz = S[0, 0], S[0, 1], S[0, 2]
+    syx, syy, syz = S[1, 0], S[1, 1], S[1, 2]
+    szx, szy, szz = S[2, 0], S[2, 1], S[2, 2]
+    Kq = np.empty((4, 4))
+    Kq[0, 0], Kq[0, 1], Kq[0, 2], Kq[0, 3] = sxx + syy + szz, syz - szy, szx - sxz, sxy - syx
+    Kq[1, 1], Kq[1, 2], Kq[1, 3] = sxx - syy - szz, sxy + syx, szx + sxz
+    Kq[2, 2], Kq[2, 3] = syy - sxx - szz, syz + szy
+    Kq[3, 3] = szz - sxx - syy
+    for a in range(4):
+        for b in range(a):
+            Kq[a, b] = Kq[b, a]
+    c2 = 0.0
+    for a in range(3):
+        for b in range(3):
+            c2 += S[a, b] * S[a, b]
+    c2 *= -2.0
+    c1 = -8.0 * (sxx * (syy * szz - syz * szy) - sxy * (syx * szz - syz * szx) + sxz * (syx * szy - syy * szx))
+    c0 = _det4(Kq)
+    x = 0.5 * spread
+    for _ in range(60):  # from above the largest root: monotone
+        x2 = x * x
+        value = ((x2 + c2) * x + c1) * x + c0
+        slope = (4.0 * x2 + 2.0 * c2) * x + c1
+        if slope == 0.0:
+            break
+        step = value / slope
+        x -= step
+        if abs(step) <= 1e-13 * abs(x) + 1e-300:
+            break
+    A = Kq.copy()
+    for a in range(4):
+        A[a, a] -= x
+    q, row = np.empty(4), np.empty(4)
+    best = -1.0
+    for drop in range(4):  # adjugate row `drop`: orthogonal to the other three rows
+        first, second, third = int(drop == 0), 2 - int(drop == 2) - int(drop == 3), 3 - int(drop == 3)
+        _cross4(A[first], A[second], A[third], row)
+        length = row[0] * row[0] + row[1] * row[1] + row[2] * row[2] + row[3] * row[3]
+        if length > best:
+            best = length
+            q[:] = row
+    if not best > 0.0:
+        return
+    q /= math.sqrt(best)
+    qw, qx, qy, qz = q[0], q[1], q[2], q[3]
+    R = out[:3, :3]
+    R[0, 0], R[0, 1], R[0, 2] = qw * qw + qx * qx - qy * qy - qz * qz, 2 * (qx * qy - qw * qz), 2 * (qx * qz + qw * qy)
+    R[1, 0], R[1, 1], R[1, 2] = 2 * (qx * qy + qw * qz), qw * qw - qx * qx + qy * qy - qz * qz, 2 * (qy * qz - qw * qx)
+    R[2, 0], R[2, 1], R[2, 2] = 2 * (qx * qz - qw * qy), 2 * (qy * qz + qw * qx), qw * qw - qx * qx - qy * qy + qz * qz
+    for a in range(3):
+        out[a, 3] = md[a] - (R[a, 0] * ms[0] + R[a, 1] * ms[1] + R[a, 2] * ms[2])
+
+
+@njit(**_OPTIONS)
+def _det4(M: np.ndarray) -> float:
+    """Determinant of a 4x4 matrix from the 2x2 minors of its top and bottom row pairs (Laplace)."""
+    s0, s1 = M[0, 0] * M[1, 1] - M[0, 1] * M[1, 0], M[0, 0] * M[1, 2] - M[0, 2] * M[1, 0]
+    s2, s3 = M[0, 0] * M[1, 3] - M[0, 3] * M[1, 0], M[0, 1] * M[1, 2] - M[0, 2] * M[1, 1]
+    s4, s5 = M[0, 1] * M[1, 3] - M[0, 3] * M[1, 1], M[0, 2] * M[1, 3] - M[0, 3] * M[1, 2]
+    c0, c1 = M[2, 0] * M[3, 1] - M[2, 1] * M[3, 0], M[2, 0] * M[3, 2] - M[2, 2] * M[3, 0]
+    c2, c3 = M[2, 0] * M[3, 3] - M[2, 3] * M[3, 0], M[2, 1] * M[3, 2] - M[2, 2] * M[3, 1]
+    c4, c5 = M[2, 1] * M[3, 3] - M[2, 3] * M[3, 1], M[2, 2] * M[3, 3] - M[2, 3] * M[3, 2]
+    return s0 * c5 - s1 * c4 + s2 * c3 + s3 * c2 - s4 * c1 + s5 * c0
+
+
+@njit(**_OPTIONS)
+def fit_rigid(src: np.ndarray, dst: np.ndarray, w: np.ndarray) -> np.ndarray:
+    """Weighted least-squares rigid fits of P sets: src, dst (P, K, 3), weights (P, K) -> (P, 4, 4) float64
+    with dst ~ R src + t (module docstring). Non-positive weights count as zero; a set without weight gets
+    identity."""
+    out = np.empty((src.shape[0], 4, 4))
+    for p in range(src.shape[0]):
+        _fit_one(src[p], dst[p], w[p], out[p])
+    return out
+
+
+@njit(**{**_OPTIONS, "fastmath": True})
+def truncated_scores(T: np.ndarray, src: np.ndarray, dst: np.ndarray, w: np.ndarray, tau: float) -> np.ndarray:
+    """Scores of hypotheses T (B, m, 4, 4) on correspondences src, dst (B, 3, N) (coordinates as rows) with
+    weights w (B, N): sum_i w_i min(|R src_i + t - dst_i|, tau) / sum_i w_i -> (B, m), in src's dtype."""
+    B, m, N = T.shape[0], T.shape[1], src.shape[2]
+    out = np.empty((B, m), dtype=src.dtype)
+    for b in range(B):
+        sx, sy, sz, dx, dy, dz, wb = src[b, 0], src[b, 1], src[b, 2], dst[b, 0], dst[b, 1], dst[b, 2], w[b]
+        total = max(wb.sum(), 1e-9)
+        for h in range(m):
+            r = T[b, h]
+            r00, r01, r02, t0 = r[0, 0], r[0, 1], r[0, 2], r[0, 3]
+            r10, r11, r12, t1 = r[1, 0], r[1, 1], r[1, 2], r[1, 3]
+            r20, r21, r22, t2 = r[2, 0], r[2, 1], r[2, 2], r[2, 3]
+            acc = 0.0
+            for i in range(N):
+                e0 = r00 * sx[i] + r01 * sy[i] + r02 * sz[i] + t0 - dx[i]
+                e1 = r10 * sx[i] + r11 * sy[i] + r12 * sz[i] + t1 - dy[i]
+                e2 = r20 * sx[i] + r21 * sy[i] + r22 * sz[i] + t2 - dz[i]
+                acc += wb[i] * min(math.sqrt(e0 * e0 + e1 * e1 + e2 * e2), tau)
+            out[b, h] = acc / total
+    return out
