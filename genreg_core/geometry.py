@@ -15,6 +15,8 @@ import numpy as np
 import torch
 from scipy.spatial.transform import Rotation
 
+from genreg_core import kernels
+
 ArrayLike = np.ndarray | torch.Tensor
 
 
@@ -135,19 +137,16 @@ def kabsch(
 
     source, target: (..., K, 3); weights: (..., K) non-negative or None. Returns (..., 4, 4).
     Batched over leading dims and differentiable (SVD of the 3x3 cross-covariance); sets with equal
-    singular values (degenerate, e.g. coinciding points) get no gradient instead of a NaN one. Without a
-    gradient to record (CPU) the same fit runs as compiled scalar code (`kernels.fit_rigid`: Horn's
+    singular values (degenerate, e.g. coinciding points) get no gradient instead of a NaN one. Where
+    `kernels.usable` (inference on the CPU) the same fit runs as compiled scalar code (`kernels.fit_rigid`: Horn's
     quaternion method, float64 inside; a set without weight gets identity).
     """
-    if source.device.type == "cpu" and not (torch.is_grad_enabled() and any(
-            x is not None and x.requires_grad for x in (source, target, weights))):
-        from genreg_core.kernels import fit_rigid  # compiled on first use
-
+    if kernels.usable(source, target, weights):
         lead = source.shape[:-2]
         w = torch.ones(source.shape[:-1]) if weights is None else weights.expand(source.shape[:-1])
         rows = [x.detach().to(source.dtype).reshape(-1, *x.shape[len(lead):]).contiguous().numpy()
                 for x in (source, target, w)]
-        return torch.from_numpy(fit_rigid(*rows)).to(source.dtype).reshape(*lead, 4, 4)
+        return torch.from_numpy(kernels.fit_rigid(*rows)).to(source.dtype).reshape(*lead, 4, 4)
     if weights is None:
         weights = torch.ones(source.shape[:-1], dtype=source.dtype, device=source.device)
     w = weights / weights.sum(dim=-1, keepdim=True).clamp_min(1e-12)

@@ -17,7 +17,11 @@ problem is one pass of scalar code:
 - `truncated_scores`: s_h = sum_i w_i min(|R_h src_i + t_h - dst_i|, tau) / sum_i w_i without storing the
   residuals.
 
-`geometry.kabsch` and `pdsac` call them when no gradient is recorded; training keeps the torch forms.
+- `knn_self`, `neighbour_max`, `invariant_geometry`: the encoder's kNN graph, the edge convolution's max over
+  neighbours and the rotation-invariant point-pair features, one pass each.
+
+Their callers (`geometry.kabsch`, `pdsac.pdsac`, `model.gcnn`, `model.invariant`) use them where `usable`
+says so, and the torch forms elsewhere (training's gradients, other devices, tracing and compiling).
 Compiled on first use and cached beside this file (numba's `cache`).
 """
 
@@ -26,9 +30,20 @@ from __future__ import annotations
 import math
 
 import numpy as np
+import torch
 from numba import njit
 
-_OPTIONS = {"cache": True, "nogil": True, "fastmath": False}
+
+def usable(*tensors: torch.Tensor | None) -> bool:
+    """Whether a compiled kernel may stand in for torch on these tensors: all on the CPU, no gradient to
+    record, and no torch.jit trace or torch.compile capturing the graph (the kernels are opaque to both)."""
+    present = [x for x in tensors if x is not None]
+    return (all(x.device.type == "cpu" for x in present)
+            and not (torch.is_grad_enabled() and any(x.requires_grad for x in present))
+            and not torch.jit.is_tracing() and not torch.compiler.is_compiling())
+
+
+_OPTIONS = {"cache": True, "nogil": True, "fastmath": False, "error_model": "numpy"}  # IEEE division, as torch
 
 
 @njit(**_OPTIONS)
@@ -257,3 +272,78 @@ def neighbour_max(values: np.ndarray, neighbours: np.ndarray) -> np.ndarray:
                 for c in range(C):
                     row[c] = max(row[c], other[c])
     return out
+
+
+@njit(**_OPTIONS)
+def invariant_geometry(points: np.ndarray, neighbours: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """`model.invariant.invariant_geometry` of (B, N, 3) clouds on their kNN graph (B, N, k), the same formulas:
+    edge features (B, N, k, 4) (|d|, |n_i . d^|, |n_j . d^|, |n_i . n_j|), point features (B, N, 4) (roots of
+    the neighbourhood covariance eigenvalues, ascending, and |x|) and unoriented normals (B, N, 3), in the
+    points' dtype; the eigenproblem in float64 (`smallest_eigenpair3`'s closed form)."""
+    B, N, k = neighbours.shape[0], neighbours.shape[1], neighbours.shape[2]
+    dtype = points.dtype
+    normals = np.empty((B, N, 3), dtype=dtype)
+    point = np.empty((B, N, 4), dtype=dtype)
+    edge = np.empty((B, N, k, 4), dtype=dtype)
+    third = 2.0 * math.pi / 3.0
+    for b in range(B):
+        x = points[b]
+        for i in range(N):
+            m0 = m1 = m2 = 0.0
+            for j in range(k):
+                n = neighbours[b, i, j]
+                m0 += x[n, 0]
+                m1 += x[n, 1]
+                m2 += x[n, 2]
+            m0, m1, m2 = m0 / k, m1 / k, m2 / k
+            a00 = a11 = a22 = a01 = a02 = a12 = 0.0
+            for j in range(k):
+                n = neighbours[b, i, j]
+                e0, e1, e2 = x[n, 0] - m0, x[n, 1] - m1, x[n, 2] - m2
+                a00 += e0 * e0
+                a11 += e1 * e1
+                a22 += e2 * e2
+                a01 += e0 * e1
+                a02 += e0 * e2
+                a12 += e1 * e2
+            a00, a11, a22, a01, a02, a12 = a00 / k, a11 / k, a22 / k, a01 / k, a02 / k, a12 / k
+            q = (a00 + a11 + a22) / 3
+            b00, b11, b22 = a00 - q, a11 - q, a22 - q
+            p = math.sqrt((b00 * b00 + b11 * b11 + b22 * b22 + 2 * (a01 * a01 + a02 * a02 + a12 * a12)) / 6)
+            det_b = b00 * (b11 * b22 - a12 * a12) - a01 * (a01 * b22 - a12 * a02) + a02 * (a01 * a12 - b11 * a02)
+            ratio = det_b / (2 * max(p, 1e-150) ** 3)
+            phi = math.acos(min(max(ratio, -1.0), 1.0)) / 3
+            largest, smallest = q + 2 * p * math.cos(phi), q + 2 * p * math.cos(phi + third)
+            evals = (smallest, 3 * q - smallest - largest, largest)
+            r00, r11, r22 = a00 - smallest, a11 - smallest, a22 - smallest  # rows of cov - smallest I
+            best, v0, v1, v2 = -1.0, 0.0, 0.0, 0.0
+            for c in range(3):  # r0 x r1, r0 x r2, r1 x r2: the longest is the best conditioned
+                if c == 0:
+                    u0, u1, u2, w0, w1, w2 = r00, a01, a02, a01, r11, a12
+                elif c == 1:
+                    u0, u1, u2, w0, w1, w2 = r00, a01, a02, a02, a12, r22
+                else:
+                    u0, u1, u2, w0, w1, w2 = a01, r11, a12, a02, a12, r22
+                c0, c1, c2 = u1 * w2 - u2 * w1, u2 * w0 - u0 * w2, u0 * w1 - u1 * w0
+                length = math.sqrt(c0 * c0 + c1 * c1 + c2 * c2)
+                if length > best:
+                    best, v0, v1, v2 = length, c0, c1, c2
+            best = max(best, 1e-300)
+            normals[b, i, 0], normals[b, i, 1], normals[b, i, 2] = v0 / best, v1 / best, v2 / best
+            for c in range(3):
+                point[b, i, c] = math.sqrt(max(dtype.type(evals[c]), 0.0))
+            point[b, i, 3] = math.sqrt(x[i, 0] * x[i, 0] + x[i, 1] * x[i, 1] + x[i, 2] * x[i, 2])
+        for i in range(N):
+            ni = normals[b, i]
+            for j in range(k):
+                n = neighbours[b, i, j]
+                nj = normals[b, n]
+                d0, d1, d2 = x[n, 0] - x[i, 0], x[n, 1] - x[i, 1], x[n, 2] - x[i, 2]
+                dist = math.sqrt(d0 * d0 + d1 * d1 + d2 * d2)
+                inv = 1.0 / max(dist, 1e-9)
+                u0, u1, u2 = d0 * inv, d1 * inv, d2 * inv
+                edge[b, i, j, 0] = dist
+                edge[b, i, j, 1] = abs(u0 * ni[0] + u1 * ni[1] + u2 * ni[2])
+                edge[b, i, j, 2] = abs(u0 * nj[0] + u1 * nj[1] + u2 * nj[2])
+                edge[b, i, j, 3] = abs(ni[0] * nj[0] + ni[1] * nj[1] + ni[2] * nj[2])
+    return edge, point, normals

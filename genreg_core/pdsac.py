@@ -40,6 +40,7 @@ from dataclasses import dataclass
 
 import torch
 
+from genreg_core import kernels
 from genreg_core.config import PDSACConfig
 from genreg_core.geometry import apply_transform, invert_transform, kabsch
 
@@ -202,14 +203,12 @@ def pdsac(
     s = torch.gather(src, 1, flat).reshape(B, m, k, 3)
     d = torch.gather(dst, 1, flat).reshape(B, m, k, 3)
     hyps = batch_in_threads(kabsch, s, d, dim=1)  # (B, m, 4, 4), the hypotheses in parts on 2+ threads
-    if recording(hyps, src, dst, weights) or src.device.type != "cpu":
+    if not kernels.usable(hyps, src, dst, weights):
         scores = truncated_score(hypothesis_residuals(hyps, src, dst), cfg.tau, weights)  # (B, m, N) -> (B, m)
     else:  # inference: compiled, without the (B, m, N) residual table
-        from genreg_core.kernels import truncated_scores
-
         rows = [x.transpose(1, 2).contiguous().numpy() for x in (src, dst)]
         w = (torch.ones(B, N, dtype=src.dtype) if weights is None else weights.to(src.dtype)).contiguous()
-        scores = torch.from_numpy(truncated_scores(hyps.contiguous().numpy(), *rows, w.numpy(), cfg.tau))
+        scores = torch.from_numpy(kernels.truncated_scores(hyps.contiguous().numpy(), *rows, w.numpy(), cfg.tau))
     selection = torch.softmax(-scores / cfg.temperature, dim=-1)
     best = scores.argmin(dim=-1)
     T = hyps[torch.arange(B), best]
@@ -217,11 +216,6 @@ def pdsac(
     if cfg.refit if refit is None else refit:
         T, inliers = refit_on_inliers(T, src, dst, cfg.tau)
     return PDSACResult(T, hyps, scores, selection, inliers)
-
-
-def recording(*tensors: torch.Tensor | None) -> bool:
-    """Whether autograd records an operation on any of these tensors."""
-    return torch.is_grad_enabled() and any(x is not None and x.requires_grad for x in tensors)
 
 
 def truncated_score(res: torch.Tensor, threshold: float, weights: torch.Tensor | None = None) -> torch.Tensor:

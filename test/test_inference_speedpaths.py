@@ -11,11 +11,12 @@ from scipy.spatial.transform import Rotation
 from scipy.stats import chisquare
 from torch import nn
 
+from genreg_core import kernels
 from genreg_core.config import ModelConfig, PDSACConfig
 from genreg_core.geometry import apply_transform, invert_transform, kabsch, random_transform
 from genreg_core.model.gcnn import knn_indices, neighbour_max
 from genreg_core.model.genreg import GenRegNet, neighbour_mix
-from genreg_core.model.invariant import smallest_eigenpair3
+from genreg_core.model.invariant import invariant_geometry, smallest_eigenpair3
 from genreg_core.model.layers import gather_neighbours, per_cloud, point_mlp
 from genreg_core.pdsac import (
     batch_in_threads,
@@ -24,6 +25,7 @@ from genreg_core.pdsac import (
     pdsac_bidirectional,
     sample_weighted_sequential,
     sample_weighted_sets,
+    truncated_score,
 )
 
 SMALL = ModelConfig(num_points=64, k_neighbors=8, gcnn_channels=16, mixer_hidden=(32, 16), feature_dim=16)
@@ -97,8 +99,8 @@ def test_inference_forward_equals_the_differentiable_forward(cfg: ModelConfig):
         fast = net(a, b)
     for name in ("source_generated", "target_generated"):
         assert torch.allclose(getattr(fast, name), getattr(reference, name), atol=1e-5)
-    for x, y in zip(fast.match_logits, reference.match_logits, strict=True):
-        assert torch.allclose(x, y, atol=1e-5)
+    for x, y in zip(fast.match_logits, reference.match_logits, strict=True):  # log weights of size ~10, summed
+        assert torch.allclose(x, y, atol=1e-4)  # in other orders (row products, in place): float32 rounding
     if cfg.overlap_head:
         for x, y in zip(fast.overlap_logits, reference.overlap_logits, strict=True):
             assert torch.allclose(x, y, atol=1e-5)
@@ -155,13 +157,55 @@ def test_sequential_sampler_is_seeded_and_skips_points_without_weight():
     assert (first[..., 1:] > first[..., :-1]).all() and (first >= 100).all() and (first < 140).all()
 
 
-def test_chunked_hypothesis_residuals_equal_the_broadcast_form():
+def test_compiled_scores_equal_the_residual_table_form_training_uses():
     rng = np.random.default_rng(0)
     T = torch.tensor(np.stack([[random_transform(rng) for _ in range(150)] for _ in range(2)]), dtype=torch.float32)
-    src, dst = torch.rand(2, 90, 3), torch.rand(2, 90, 3)
-    expected = torch.linalg.norm(apply_transform(T, src[:, None]) - dst[:, None], dim=-1)
-    with torch.no_grad():  # 150 hypotheses: two full chunks of 64 and a partial one
-        assert torch.allclose(hypothesis_residuals(T, src, dst), expected, atol=1e-5)
+    src, dst, w = torch.rand(2, 90, 3), torch.rand(2, 90, 3), torch.rand(2, 90)
+    expected = torch.linalg.norm(apply_transform(T, src[:, None]) - dst[:, None], dim=-1)  # broadcast form
+    assert torch.allclose(hypothesis_residuals(T, src, dst), expected, atol=1e-5)
+    for weights in (None, w):
+        table = truncated_score(expected, 0.3, weights)
+        ones = torch.ones(2, 90) if weights is None else weights
+        compiled = kernels.truncated_scores(T.numpy(), src.transpose(1, 2).contiguous().numpy(),
+                                            dst.transpose(1, 2).contiguous().numpy(), ones.numpy(), 0.3)
+        assert torch.allclose(torch.from_numpy(compiled), table, atol=1e-6)
+    sets = torch.sort(torch.rand(2, 64, 90).argsort(-1)[..., :3], dim=-1).values  # the same minimal sets
+    cfg = PDSACConfig(num_hypotheses=64, inlier_threshold=0.3)
+    with torch.no_grad():
+        fast = pdsac(src, dst, cfg, refit=False, weights=w, sets=sets)
+    slow = pdsac(src.requires_grad_(), dst, cfg, refit=False, weights=w, sets=sets)  # training's path
+    assert torch.allclose(fast.hypotheses, slow.hypotheses.detach(), atol=1e-4)
+    assert torch.allclose(fast.scores, slow.scores.detach(), atol=1e-5)
+
+
+@pytest.mark.parametrize("k", [3, 4, 60])
+def test_compiled_kabsch_equals_the_svd_form_and_recovers_exact_motions(k: int):
+    rng = np.random.default_rng(k)
+    R = torch.tensor(Rotation.random(400, random_state=k).as_matrix())
+    src = torch.tensor(rng.random((400, k, 3)))
+    exact = src @ R.transpose(1, 2) + torch.tensor(rng.normal(size=(400, 1, 3)))
+    noisy = exact + 0.05 * torch.tensor(rng.normal(size=(400, k, 3)))
+    w = torch.tensor(rng.random((400, k)))
+    with torch.no_grad():
+        assert torch.allclose(kabsch(src, exact)[:, :3, :3], R, atol=1e-7)  # the truth, in float64
+        compiled = kabsch(src, noisy, w)
+    svd = kabsch(src.clone().requires_grad_(), noisy, w).detach()  # the differentiable SVD form
+    assert torch.allclose(compiled, svd, atol=1e-6)
+    assert torch.allclose(torch.linalg.det(compiled[:, :3, :3]), torch.ones(400, dtype=torch.float64))
+    with torch.no_grad():  # no weight at all: identity
+        assert torch.equal(kabsch(src[:2], noisy[:2], torch.zeros(2, k, dtype=torch.float64)),
+                           torch.eye(4, dtype=torch.float64).expand(2, 4, 4))
+
+
+def test_compiled_invariant_geometry_equals_the_torch_form(monkeypatch: pytest.MonkeyPatch):
+    torch.manual_seed(0)
+    points = torch.rand(2, 256, 3) - 0.5
+    graph = knn_indices(points, 20)
+    compiled = invariant_geometry(points, graph)
+    monkeypatch.setattr(kernels, "usable", lambda *tensors: False)
+    edge, point, normals = invariant_geometry(points, graph)
+    assert torch.allclose(compiled[0], edge, atol=1e-5) and torch.allclose(compiled[1], point, atol=1e-6)
+    assert ((compiled[2] * normals).sum(-1).abs() > 1 - 1e-5).all()  # unoriented: the same line
 
 
 def test_batch_in_threads_gives_the_direct_values():

@@ -5,6 +5,7 @@ from __future__ import annotations
 import torch
 from torch import nn
 
+from genreg_core import kernels
 from genreg_core.model.layers import gather_neighbours, norm_layer, per_cloud
 
 
@@ -15,20 +16,16 @@ def knn_indices(points: torch.Tensor, k: int) -> torch.Tensor:
     the time of a scipy k-d tree per cloud and a quarter of a dense cdist + topk. Indices carry no gradient,
     so leaving torch here costs nothing in training.
     """
-    from genreg_core.kernels import knn_self  # compiled on first use
-
     cloud = points.detach().cpu().contiguous().numpy()
-    return torch.from_numpy(knn_self(cloud, k)).to(points.device)
+    return torch.from_numpy(kernels.knn_self(cloud, k)).to(points.device)
 
 
 def neighbour_max(values: torch.Tensor, neighbours: torch.Tensor) -> torch.Tensor:
-    """Max of values (B, N, C) over each point's neighbours (B, N, k) -> (B, N, C). Without a gradient to
-    record (CPU) in compiled code (`kernels.neighbour_max`), without the (B, N, k, C) gather."""
-    if torch.is_grad_enabled() and values.requires_grad or values.device.type != "cpu":
+    """Max of values (B, N, C) over each point's neighbours (B, N, k) -> (B, N, C); where `kernels.usable`, in
+    compiled code without the (B, N, k, C) gather."""
+    if not kernels.usable(values, neighbours):
         return gather_neighbours(values, neighbours).amax(dim=2)
-    from genreg_core.kernels import neighbour_max as compiled
-
-    return torch.from_numpy(compiled(values.detach().contiguous().numpy(), neighbours.contiguous().numpy()))
+    return torch.from_numpy(kernels.neighbour_max(values.contiguous().numpy(), neighbours.contiguous().numpy()))
 
 
 class EdgeConv(nn.Module):

@@ -23,6 +23,7 @@ import math
 import torch
 from torch import nn
 
+from genreg_core import kernels
 from genreg_core.model.gcnn import EdgeConv, knn_indices
 from genreg_core.model.layers import gather_neighbours, per_cloud, point_mlp
 
@@ -91,8 +92,12 @@ def invariant_geometry(
     """Rigid-motion invariants of centred (B, N, 3) clouds on a kNN graph (B, N, k).
 
     Returns edge features (B, N, k, 4) and point features (B, N, 4), as described in the module doc, and
-    the unoriented normals (B, N, 3) they were computed with.
+    the unoriented normals (B, N, 3) they were computed with. Where `kernels.usable`, in one compiled pass
+    (`kernels.invariant_geometry`, the same formulas).
     """
+    if kernels.usable(points, neighbours):
+        return tuple(torch.from_numpy(x) for x in kernels.invariant_geometry(points.contiguous().numpy(),
+                                                                            neighbours.contiguous().numpy()))
     normals, evals = local_shape(points, neighbours)
     edge = point_pair_features(
         points, normals, gather_neighbours(points, neighbours), gather_neighbours(normals, neighbours)
