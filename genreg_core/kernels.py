@@ -210,7 +210,7 @@ def _morton_order(x: np.ndarray) -> np.ndarray:
     return np.argsort(keys)
 
 
-@njit(**_OPTIONS)
+@njit(**_OPTIONS, inline="always")  # inlined: a call per candidate would cost more than the insertion
 def _insert(d: float, j: int, dist: np.ndarray, index: np.ndarray, count: int) -> int:
     """Insert (d, j) into the first `count` entries of the ascending lists dist, index (capacity k; (distance,
     index) order, so ties go to the lower index), dropping the last when full; returns the new count."""
@@ -347,3 +347,58 @@ def invariant_geometry(points: np.ndarray, neighbours: np.ndarray) -> tuple[np.n
                 edge[b, i, j, 2] = abs(u0 * nj[0] + u1 * nj[1] + u2 * nj[2])
                 edge[b, i, j, 3] = abs(ni[0] * nj[0] + ni[1] * nj[1] + ni[2] * nj[2])
     return edge, point, normals
+
+
+@njit(**_OPTIONS, inline="always")
+def _residual(T: np.ndarray, s: np.ndarray, d: np.ndarray) -> float:
+    """|R s + t - d| for a 4x4 T (float64) and 3-vectors s, d."""
+    e0 = T[0, 0] * s[0] + T[0, 1] * s[1] + T[0, 2] * s[2] + T[0, 3] - d[0]
+    e1 = T[1, 0] * s[0] + T[1, 1] * s[1] + T[1, 2] * s[2] + T[1, 3] - d[1]
+    e2 = T[2, 0] * s[0] + T[2, 1] * s[1] + T[2, 2] * s[2] + T[2, 3] - d[2]
+    return math.sqrt(e0 * e0 + e1 * e1 + e2 * e2)
+
+
+@njit(**_OPTIONS)
+def _refit(T: np.ndarray, src: np.ndarray, dst: np.ndarray, w: np.ndarray, limit: float, mask: np.ndarray,
+           fitted: np.ndarray) -> None:
+    """One least-squares refit of T (4, 4) in place on its correspondences within `limit` (weights w), kept
+    when fewer than 3 are; mask and fitted are scratch."""
+    count = 0
+    for i in range(src.shape[0]):
+        inside = _residual(T, src[i], dst[i]) < limit
+        mask[i] = w[i] if inside else 0.0
+        count += inside
+    if count >= 3:
+        _fit_one(src, dst, mask, fitted)
+        T[:] = fitted
+
+
+@njit(**_OPTIONS)
+def consensus(candidates: np.ndarray, src: np.ndarray, dst: np.ndarray, w: np.ndarray, tau: float,
+              limits: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """PDSAC's last steps on correspondences src -> dst (B, M, 3) with weights w (B, M): each candidate
+    (B, C, 4, 4) refit once on its inliers (residual < tau; kept with fewer than 3), the one with the lowest
+    weighted truncated mean residual kept, then refit once at each of `limits` (absolute thresholds, in
+    order). Returns the transforms (B, 4, 4) float64 and their inliers at tau (B, M)."""
+    B, C, M = candidates.shape[0], candidates.shape[1], src.shape[1]
+    out = np.empty((B, 4, 4))
+    inliers = np.empty((B, M), dtype=np.bool_)
+    mask, fitted, T = np.empty(M), np.empty((4, 4)), np.empty((4, 4))
+    for b in range(B):
+        total = max(w[b].sum(), 1e-9)
+        best = np.inf
+        for c in range(C):
+            T[:] = candidates[b, c]
+            _refit(T, src[b], dst[b], w[b], tau, mask, fitted)  # local optimisation
+            score = 0.0
+            for i in range(M):
+                score += w[b, i] * min(_residual(T, src[b, i], dst[b, i]), tau)
+            score /= total
+            if score < best:
+                best = score
+                out[b] = T
+        for limit in limits:
+            _refit(out[b], src[b], dst[b], w[b], limit, mask, fitted)
+        for i in range(M):
+            inliers[b, i] = _residual(out[b], src[b, i], dst[b, i]) < tau
+    return out, inliers

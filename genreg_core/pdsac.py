@@ -38,6 +38,7 @@ from collections.abc import Callable, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
+import numpy as np
 import torch
 
 from genreg_core import kernels
@@ -326,7 +327,14 @@ def pdsac_bidirectional(
         res_b = pdsac(b, b_gen, cfg, refit=False, weights=o_b, sets=sets_b)
     src, dst = union_correspondences(a, a_gen, b, b_gen)
     w = None if overlap is None else torch.cat([o_a, o_b], dim=1)
-    candidates = local_optimisation(best_hypotheses(res_a, res_b, cfg.local_candidates), src, dst, cfg.tau, w)
+    best = best_hypotheses(res_a, res_b, cfg.local_candidates)
+    if kernels.usable(src, dst, w, best):  # the same steps, compiled
+        limits = [cfg.tau, cfg.tau, *(cfg.tau * f for f in cfg.refit_tightening)] if cfg.refit else []
+        ones = torch.ones(src.shape[:2], dtype=src.dtype) if w is None else w.to(src.dtype)
+        T, inliers = kernels.consensus(*(x.contiguous().numpy() for x in (best, src, dst, ones)), cfg.tau,
+                                       np.asarray(limits, dtype=np.float64))
+        return torch.from_numpy(T).to(src.dtype), res_a, res_b, torch.from_numpy(inliers)
+    candidates = local_optimisation(best, src, dst, cfg.tau, w)
     score = truncated_score(residuals(candidates, src[:, None], dst[:, None]), cfg.tau, w)
     T = candidates[torch.arange(a.shape[0]), score.argmin(dim=1)]
     if cfg.refit:  # tightened last rounds: only the closest correspondences fit

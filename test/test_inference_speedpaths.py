@@ -197,6 +197,24 @@ def test_compiled_kabsch_equals_the_svd_form_and_recovers_exact_motions(k: int):
                            torch.eye(4, dtype=torch.float64).expand(2, 4, 4))
 
 
+def test_compiled_consensus_equals_pdsacs_torch_steps(monkeypatch: pytest.MonkeyPatch):
+    """pdsac_bidirectional's local optimisation, candidate choice and tightened refits in compiled code give the
+    transform and inliers of the torch steps (with the SVD fits) on noisy, outlier-ridden correspondences."""
+    rng = np.random.default_rng(5)
+    T = torch.tensor(np.stack([random_transform(rng) for _ in range(3)]), dtype=torch.float32)
+    a, b = torch.rand(3, 256, 3), torch.rand(3, 256, 3)
+    a_gen = apply_transform(T, a) + 0.01 * torch.randn(3, 256, 3)
+    b_gen = apply_transform(invert_transform(T), b) + 0.01 * torch.randn(3, 256, 3)
+    a_gen[:, :80], b_gen[:, 100:160] = torch.rand(3, 80, 3), torch.rand(3, 60, 3)  # outliers
+    overlap = (torch.rand(3, 256), torch.rand(3, 256))
+    cfg = PDSACConfig(inlier_threshold=0.05)
+    compiled = pdsac_bidirectional(a, a_gen, b, b_gen, cfg, torch.Generator().manual_seed(0), overlap)
+    monkeypatch.setattr(kernels, "usable", lambda *tensors: False)
+    reference = pdsac_bidirectional(a, a_gen, b, b_gen, cfg, torch.Generator().manual_seed(0), overlap)
+    assert torch.allclose(compiled[0], reference[0], atol=1e-4) and torch.equal(compiled[3], reference[3])
+    assert torch.allclose(compiled[0], T, atol=0.02)  # and both found the motion
+
+
 def test_compiled_invariant_geometry_equals_the_torch_form(monkeypatch: pytest.MonkeyPatch):
     torch.manual_seed(0)
     points = torch.rand(2, 256, 3) - 0.5
