@@ -101,10 +101,26 @@ class SoftPointer(nn.Module):
 
     def forward(self, f_x: torch.Tensor, f_y: torch.Tensor) -> torch.Tensor:
         """(B, N, C), (B, M, C) features -> log weights (B, N, M), normalised over M."""
-        q, k = self.query(f_x), self.key(f_y)
+        return self.log_weights(self.embed(self.query, f_x), self.embed(self.key, f_y))
+
+    def both(self, f_x: torch.Tensor, f_y: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """(forward(f_x, f_y), forward(f_y, f_x)). Without a gradient and for clouds of one size, each
+        projection runs once on both clouds' rows (one product instead of two)."""
+        if torch.is_grad_enabled() or f_x.shape != f_y.shape:
+            return self(f_x, f_y), self(f_y, f_x)
+        rows = torch.cat([f_x, f_y])
+        (q_x, q_y), (k_x, k_y) = self.embed(self.query, rows).chunk(2), self.embed(self.key, rows).chunk(2)
+        return self.log_weights(q_x, k_y), self.log_weights(q_y, k_x)
+
+    def embed(self, projection: nn.Linear, f: torch.Tensor) -> torch.Tensor:
+        """Unit query or key vectors of each cloud (B, N, dim), centred over the cloud first (`centred`)."""
+        x = projection(f)
         if self.centred:  # the component all points share carries no match
-            q, k = q - q.mean(dim=1, keepdim=True), k - k.mean(dim=1, keepdim=True)
-        q, k = nn.functional.normalize(q, dim=-1), nn.functional.normalize(k, dim=-1)
+            x = x - x.mean(dim=1, keepdim=True)
+        return nn.functional.normalize(x, dim=-1)
+
+    def log_weights(self, q: torch.Tensor, k: torch.Tensor) -> torch.Tensor:
+        """Sharpened cosines of unit queries (B, N, dim) and keys (B, M, dim), log-softmax over M."""
         logits, sharpness = q @ k.transpose(1, 2), self.log_sharpness.exp()
         logits = logits * sharpness if torch.is_grad_enabled() else logits.mul_(sharpness)
         return torch.log_softmax(logits, dim=-1)
@@ -200,13 +216,17 @@ class GenRegNet(nn.Module):
 
     def interact(self, enc: Encoded) -> Match:
         """Stage 2: log match weights both ways and, with the overlap head, per-point overlap logits."""
-        log_w_a, log_w_b = self.pointer(enc.f_a, enc.f_b), self.pointer(enc.f_b, enc.f_a)
+        log_w_a, log_w_b = self.pointer.both(enc.f_a, enc.f_b)
         (top_a, best_a), (top_b, best_b) = log_w_a.max(dim=-1), log_w_b.max(dim=-1)  # one pass: value and index
         if self.overlap is None:
             return Match(log_w_a, log_w_b, best_a, best_b)
-        return Match(log_w_a, log_w_b, best_a, best_b,
-                     self.overlap(enc.f_a, top_a, log_w_a.shape[-1], cycle_distance(best_a, best_b, enc.a0)),
-                     self.overlap(enc.f_b, top_b, log_w_b.shape[-1], cycle_distance(best_b, best_a, enc.b0)))
+        cycle_a, cycle_b = cycle_distance(best_a, best_b, enc.a0), cycle_distance(best_b, best_a, enc.b0)
+        if torch.is_grad_enabled() or log_w_a.shape != log_w_b.shape:
+            return Match(log_w_a, log_w_b, best_a, best_b, self.overlap(enc.f_a, top_a, log_w_a.shape[-1], cycle_a),
+                         self.overlap(enc.f_b, top_b, log_w_b.shape[-1], cycle_b))
+        both = self.overlap(torch.cat([enc.f_a, enc.f_b]), torch.cat([top_a, top_b]), log_w_a.shape[-1],
+                            torch.cat([cycle_a, cycle_b]))  # one pass over both clouds' rows
+        return Match(log_w_a, log_w_b, best_a, best_b, *both.chunk(2))
 
     def generate(self, enc: Encoded, match: Match) -> GenRegOutput:
         """Stage 3: A_g (A in B's frame) and B_g (B in A's frame) from the matches."""
