@@ -402,3 +402,60 @@ def consensus(candidates: np.ndarray, src: np.ndarray, dst: np.ndarray, w: np.nd
         for i in range(M):
             inliers[b, i] = _residual(out[b], src[b, i], dst[b, i]) < tau
     return out, inliers
+
+
+@njit(**_OPTIONS)
+def plane_normals(points: np.ndarray, neighbours: np.ndarray) -> np.ndarray:
+    """`score.plane_normals`'s formulas, one pass per set: (m, 3) unit normals (zero without spread) of the sets
+    points[neighbours] ((m, k) rows of (M, 3) float64 points), from moments about the cloud's mean."""
+    m, k = neighbours.shape
+    centre = np.zeros(3)
+    for i in range(points.shape[0]):
+        for a in range(3):
+            centre[a] += points[i, a]
+    centre /= max(points.shape[0], 1)
+    out = np.zeros((m, 3))
+    for r in range(m):
+        sx = sy = sz = sxx = sxy = sxz = syy = syz = szz = 0.0
+        for j in range(k):
+            n = neighbours[r, j]
+            x, y, z = points[n, 0] - centre[0], points[n, 1] - centre[1], points[n, 2] - centre[2]
+            sx += x
+            sy += y
+            sz += z
+            sxx += x * x
+            sxy += x * y
+            sxz += x * z
+            syy += y * y
+            syz += y * z
+            szz += z * z
+        mx, my, mz = sx / k, sy / k, sz / k
+        c00, c01, c02 = sxx / k - mx * mx, sxy / k - mx * my, sxz / k - mx * mz
+        c11, c12, c22 = syy / k - my * my, syz / k - my * mz, szz / k - mz * mz
+        top = max(abs(c00), abs(c01), abs(c02), abs(c11), abs(c12), abs(c22))
+        if not top > 0:
+            continue  # no spread: a zero normal
+        c00, c01, c02, c11, c12, c22 = c00 / top, c01 / top, c02 / top, c11 / top, c12 / top, c22 / top
+        q = (c00 + c11 + c22) / 3
+        b00, b11, b22 = c00 - q, c11 - q, c22 - q
+        p = math.sqrt((b00 * b00 + b11 * b11 + b22 * b22 + 2 * (c01 * c01 + c02 * c02 + c12 * c12)) / 6)
+        p = p if p != 0 else 1.0  # isotropic: any direction will do
+        det = b00 * (b11 * b22 - c12 * c12) - c01 * (c01 * b22 - c12 * c02) + c02 * (c01 * c12 - b11 * c02)
+        smallest = q + 2 * p * math.cos(math.acos(min(max(det / (2 * p ** 3), -1.0), 1.0)) / 3 + 2 * math.pi / 3)
+        r00, r11, r22 = c00 - smallest, c11 - smallest, c22 - smallest
+        best, v0, v1, v2 = 0.0, 0.0, 0.0, 0.0
+        for c in range(3):  # r0 x r1, r0 x r2, r1 x r2: the longest is the best conditioned
+            if c == 0:
+                u0, u1, u2, w0, w1, w2 = r00, c01, c02, c01, r11, c12
+            elif c == 1:
+                u0, u1, u2, w0, w1, w2 = r00, c01, c02, c02, c12, r22
+            else:
+                u0, u1, u2, w0, w1, w2 = c01, r11, c12, c02, c12, r22
+            x0, x1, x2 = u1 * w2 - u2 * w1, u2 * w0 - u0 * w2, u0 * w1 - u1 * w0
+            length = x0 * x0 + x1 * x1 + x2 * x2
+            if length > best:
+                best, v0, v1, v2 = length, x0, x1, x2
+        if best > 0:
+            norm = math.sqrt(best)
+            out[r, 0], out[r, 1], out[r, 2] = v0 / norm, v1 / norm, v2 / norm
+    return out

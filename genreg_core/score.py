@@ -17,8 +17,8 @@ import os
 
 import numpy as np
 import small_gicp
-from scipy import sparse
 
+from genreg_core import kernels
 from genreg_core.geometry import apply_transform
 
 FITNESS_SPACINGS = 3.0  # fitness counts a source point as overlapping within this many target spacings
@@ -100,35 +100,12 @@ def sorted_distinct(values: np.ndarray) -> np.ndarray:
 def plane_normals(points: np.ndarray, neighbours: np.ndarray) -> np.ndarray:
     """(m, 3) unit normals of the point sets `points[neighbours]` ((m, k) rows of an (M, 3) cloud): each
     set's least-variance direction (zero for a set with no spread), the eigenvector of the smallest
-    eigenvalue of its covariance. The covariances come from per-point moments summed by one sparse product
-    (as Open3D's cumulants); the eigenvector in closed form: the eigenvalue by the trigonometric formula of a
+    eigenvalue of its covariance. The covariances come from moments about the cloud's mean (as Open3D's
+    cumulants); the eigenvector in closed form: the eigenvalue by the trigonometric formula of a
     symmetric 3x3 matrix, the vector as the longest cross product of two rows of (C - lambda I). Matches
-    LAPACK / Open3D to ~1e-13 on planar neighbourhoods."""
-    m, k = neighbours.shape
-    x, y, z = (points - points.mean(axis=0)).T  # centred: the moments then cancel no large offset
-    moments = np.stack([x * x, x * y, x * z, y * y, y * z, z * z, x, y, z], axis=1)
-    pick = sparse.csr_matrix((np.ones(m * k), neighbours.ravel(), np.arange(0, m * k + 1, k)), shape=(m, len(points)))
-    sums = (pick @ moments).T / k
-    mx, my, mz = sums[6:]
-    c = [sums[0] - mx * mx, sums[1] - mx * my, sums[2] - mx * mz, sums[3] - my * my, sums[4] - my * mz,
-         sums[5] - mz * mz]
-    top = np.maximum.reduce([np.abs(v) for v in c])
-    spread = top > 0
-    top[~spread] = 1.0
-    c00, c01, c02, c11, c12, c22 = (v / top for v in c)  # scaled to 1 for precision
-    q = (c00 + c11 + c22) / 3
-    b00, b11, b22 = c00 - q, c11 - q, c22 - q
-    p = np.sqrt((b00 * b00 + b11 * b11 + b22 * b22 + 2 * (c01 * c01 + c02 * c02 + c12 * c12)) / 6)
-    p[p == 0] = 1.0  # isotropic (C = q I): every direction is an eigenvector; any one will do
-    det = b00 * (b11 * b22 - c12 * c12) - c01 * (c01 * b22 - c12 * c02) + c02 * (c01 * c12 - b11 * c02)
-    smallest = q + 2 * p * np.cos(np.arccos(np.clip(det / (2 * p ** 3), -1.0, 1.0)) / 3 + 2 * np.pi / 3)
-    rows = np.stack([c00 - smallest, c01, c02, c01, c11 - smallest, c12, c02, c12, c22 - smallest]).reshape(3, 3, m)
-    u, v = rows[[0, 0, 1]], rows[[1, 2, 2]]  # the three pairs of rows, (pair, axis, m)
-    cross = u[:, [1, 2, 0]] * v[:, [2, 0, 1]] - u[:, [2, 0, 1]] * v[:, [1, 2, 0]]
-    lengths = np.einsum("pam,pam->pm", cross, cross)
-    best, every = np.argmax(lengths, axis=0), np.arange(m)
-    length = np.sqrt(lengths[best, every])
-    return cross[best, :, every] * (spread / np.where(length > 0, length, 1.0))[:, None]
+    LAPACK / Open3D to ~1e-13 on planar neighbourhoods. Compiled (`kernels.plane_normals`), one pass per set."""
+    return kernels.plane_normals(np.ascontiguousarray(points, dtype=np.float64),
+                                 np.ascontiguousarray(neighbours, dtype=np.int64))
 
 
 def point_spacing(points: np.ndarray | TargetIndex) -> float:
