@@ -57,10 +57,9 @@ class PDSACResult:
     inliers: torch.Tensor  # (B, N) bool, residual of `transform` below the threshold
 
 
-# Batched LAPACK calls (the SVDs of `geometry.kabsch`) solve one small matrix after another, on one thread
-# whatever `torch.get_num_threads()` says. Torch releases the GIL inside its kernels, so parts of the batch
-# on a small thread pool use the other cores: on 2 CPU threads the 2 x 512 hypothesis fits take about
-# 2.5 ms less per pair (1024 3x3 SVDs: 2.6 ms instead of 4.4 ms), with the same values (per-row work).
+# The minimal-set fits (`geometry.kabsch`: compiled at inference, batched SVDs in training) run on one thread
+# whatever `torch.get_num_threads()` says, and release the GIL; with more than one torch thread (estimate_threads
+# 0 or 2+) parts of the batch run on a small thread pool, with the same values (per-row work).
 _pool: ThreadPoolExecutor | None = None
 _pool_size = 0
 
