@@ -459,3 +459,19 @@ def plane_normals(points: np.ndarray, neighbours: np.ndarray) -> np.ndarray:
             norm = math.sqrt(best)
             out[r, 0], out[r, 1], out[r, 2] = v0 / norm, v1 / norm, v2 / norm
     return out
+
+
+@njit(**{**_OPTIONS, "fastmath": True})
+def transform_rows(T: np.ndarray, points: np.ndarray) -> np.ndarray:
+    """x' = R x + t for the rows of (N, 3) points (any real dtype, any strides) -> (N, 3) float32, one pass;
+    T (4, 4) in the arithmetic's dtype (float32 for float32 points, float64 otherwise)."""
+    out = np.empty((points.shape[0], 3), dtype=np.float32)
+    r00, r01, r02, t0 = T[0, 0], T[0, 1], T[0, 2], T[0, 3]
+    r10, r11, r12, t1 = T[1, 0], T[1, 1], T[1, 2], T[1, 3]
+    r20, r21, r22, t2 = T[2, 0], T[2, 1], T[2, 2], T[2, 3]
+    for i in range(points.shape[0]):
+        x, y, z = T.dtype.type(points[i, 0]), T.dtype.type(points[i, 1]), T.dtype.type(points[i, 2])
+        out[i, 0] = r00 * x + r01 * y + r02 * z + t0
+        out[i, 1] = r10 * x + r11 * y + r12 * z + t1
+        out[i, 2] = r20 * x + r21 * y + r22 * z + t2
+    return out

@@ -19,7 +19,6 @@ product (`transform_rows`).
 from __future__ import annotations
 
 import time
-import warnings
 from dataclasses import dataclass, replace
 from functools import cached_property
 
@@ -27,6 +26,7 @@ import numpy as np
 import open3d as o3d
 import torch
 
+from genreg_core import kernels
 from genreg_core.config import (
     AUTO_GUARD_DISTANCE,
     AUTO_ICP_DISTANCE,
@@ -39,8 +39,6 @@ from genreg_core.refine import o3d_cloud
 from genreg_core.score import TargetIndex, sorted_distinct
 
 ROBUST_QUANTILE = 0.001  # robust_extent ignores this share of the points on each side of each axis
-ALIGN_BLOCK = 4  # transform_rows: points per row of its block-diagonal product
-ALIGN_CHUNK = 1 << 16  # transform_rows: rows per product for inputs that are not float32 (multiple of 4)
 
 
 def validate_cloud(points: object, name: str, min_points: int) -> tuple[np.ndarray, np.ndarray]:
@@ -212,39 +210,11 @@ class PreparedPair:
 
 
 def transform_rows(T: np.ndarray, points: np.ndarray) -> np.ndarray:
-    """x' = R x + t for the rows of an (N, 3) array, as float32, at about memory speed.
-
-    float32 input: one float32 matrix product with float32 R and t, no copy of the input. The rows are read
-    as (N / k, 3 k) against the block-diagonal kron(I_k, R^T) (k = `ALIGN_BLOCK`), which BLAS runs near
-    memory speed, unlike the tall (N, 3) @ (3, 3) product (10x slower, and numpy's 50x). Other dtypes
-    (float64, integers) run the same product in float64 on chunks of `ALIGN_CHUNK` rows written into the
-    float32 result: no float64 copy of the whole cloud.
-    """
+    """x' = R x + t for the rows of an (N, 3) array, as float32, at about memory speed: one compiled pass
+    (`kernels.transform_rows`) in float32 for float32 input (float32 R and t), in float64 for other dtypes
+    (float64, integers), with no copy of the input."""
     dtype = np.float32 if points.dtype == np.float32 else np.float64
-    R, t = T[:3, :3].T.astype(dtype), T[:3, 3].astype(dtype)
-    weight = torch.from_numpy(np.kron(np.eye(ALIGN_BLOCK, dtype=dtype), R))
-    bias = torch.from_numpy(np.tile(t, ALIGN_BLOCK))
-    out = np.empty((len(points), 3), dtype=np.float32)
-    step = len(points) if dtype == np.float32 else ALIGN_CHUNK
-    for start in range(0, len(points), step):
-        rows, dest = points[start:start + step], out[start:start + step]
-        body = len(rows) - len(rows) % ALIGN_BLOCK
-        x = _tensor(np.ascontiguousarray(rows[:body], dtype=dtype).reshape(-1, 3 * ALIGN_BLOCK))
-        if dtype == np.float32:
-            torch.addmm(bias, x, weight, out=torch.from_numpy(dest[:body].reshape(-1, 3 * ALIGN_BLOCK)))
-        else:
-            dest[:body] = torch.addmm(bias, x, weight).numpy().reshape(-1, 3)
-        dest[body:] = rows[body:].astype(dtype) @ R + t
-    return out
-
-
-def _tensor(array: np.ndarray) -> torch.Tensor:
-    """`torch.from_numpy` without its warning on read-only arrays (which are only read here)."""
-    if array.flags.writeable:
-        return torch.from_numpy(array)
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", UserWarning)
-        return torch.from_numpy(array)
+    return kernels.transform_rows(np.ascontiguousarray(T, dtype=dtype), points)
 
 
 def prepare_pair(
