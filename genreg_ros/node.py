@@ -73,6 +73,7 @@ from genreg_ros.pointcloud2 import (
     from_cdr,
     parse_layout,
     read_points,
+    replace_points,
     transform_cloud,
     xyz_to_msg,
 )
@@ -127,6 +128,7 @@ class _Publication:
     overhead: float
     timings: dict[str, float]
     low_confidence: bool
+    registered_decoded: bool  # the registered points were the decoded ones (no preprocessing changed them)
 
 
 @dataclass(frozen=True)
@@ -514,7 +516,7 @@ class RegisterNode(LifecycleNode):
             "points_in": float(src.num_input), "points_registered": float(len(src_points)),
             "points_target": float(len(tgt_points)),
             "initial_guess_won": float(result.start == "initial_guess"),  # refinement from the guess won
-        }, low_confidence))
+        }, low_confidence, src_points is src.points))
 
     def _publish_loop(self) -> None:
         while (job := self._outbox.get()) is not None:
@@ -532,7 +534,10 @@ class RegisterNode(LifecycleNode):
         c, result, header = self._config, job.result, job.header
         t0 = time.perf_counter()
         T_target_source = result.transformation
-        aligned = transform_cloud(header, job.source, T_target_source)
+        if job.registered_decoded and job.source.points.dtype == result.aligned_source.dtype:
+            aligned = replace_points(header, job.source, result.aligned_source)  # the API moved these points
+        else:
+            aligned = transform_cloud(header, job.source, T_target_source)
         transform = matrix_to_msg(T_target_source, header, job.source_frame)
         pose = matrix_to_pose_msg(T_target_source, header, getattr(result, "covariance", None))
         t1 = time.perf_counter()
