@@ -475,3 +475,29 @@ def transform_rows(T: np.ndarray, points: np.ndarray) -> np.ndarray:
         out[i, 1] = r10 * x + r11 * y + r12 * z + t1
         out[i, 2] = r20 * x + r21 * y + r22 * z + t2
     return out
+
+
+def compile_all() -> None:
+    """Compile (or load from numba's cache) every kernel for the array types the pipeline passes, on tiny
+    inputs: a cold compile takes about half a minute, a cached load about a second. `scripts/setup.sh` runs
+    it once (`python -m genreg_core.kernels`) and the node at configure, so no registration waits for it."""
+    f32, f64 = np.float32, np.float64
+    rng = np.random.default_rng(0)
+    cloud = rng.random((1, 32, 3)).astype(f32)
+    graph = knn_self(cloud, 8)
+    knn_self(cloud.astype(f64), 8)
+    invariant_geometry(cloud, graph)
+    neighbour_max(rng.random((1, 32, 4)).astype(f32), graph)
+    for dtype in (f32, f64):
+        sets = rng.random((4, 3, 3)).astype(dtype)
+        fit_rigid(sets, sets, np.ones((4, 3), dtype=dtype))
+        transform_rows(np.eye(4, dtype=dtype), cloud[0].astype(dtype))
+    hypotheses = np.tile(np.eye(4, dtype=f32), (1, 2, 1, 1))
+    rows = np.ascontiguousarray(cloud.transpose(0, 2, 1))
+    truncated_scores(hypotheses, rows, rows, np.ones((1, 32), dtype=f32), 0.1)
+    consensus(hypotheses, cloud, cloud, np.ones((1, 32), dtype=f32), 0.1, np.array([0.1]))
+    plane_normals(cloud[0].astype(f64), graph[0])
+
+
+if __name__ == "__main__":
+    compile_all()

@@ -317,11 +317,14 @@ class RegisterNode(LifecycleNode):
 
     # ----------------------------------------------------------------- start-up
     def _load_registrar(self, c: NodeConfig):
+        from genreg_core import kernels
         from genreg_core.registration import Registrar
 
         try:
-            return Registrar.from_checkpoint(c.model.checkpoint, config=c.registration_config(),
-                                             num_points=c.model.num_points or None)
+            registrar = Registrar.from_checkpoint(c.model.checkpoint, config=c.registration_config(),
+                                                  num_points=c.model.num_points or None)
+            kernels.compile_all()  # the compiled kernels now, not at the first registration
+            return registrar
         except GenRegError as exc:
             raise StartupError(str(exc)) from None
         except (RuntimeError, AssertionError, OSError) as exc:  # e.g. a cuda device on a CPU-only torch

@@ -25,3 +25,5 @@ if [ ! -f "$STAMP" ] || [ "$(cat "$STAMP")" != "$REQ_HASH" ]; then
   [ -f setup.py ] && pip install -q --no-deps -e .
   echo "$REQ_HASH" > "$STAMP"
 fi
+# Compile genreg's numba kernels once into their cache (about half a minute cold, a second when cached).
+python -m genreg_core.kernels
