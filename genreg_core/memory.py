@@ -1,13 +1,14 @@
 """Process memory policy of genreg's own entry points: keep freed memory for reuse.
 
 glibc's malloc serves blocks above its mmap threshold with fresh mappings and returns freed memory at the
-top of the heap to the system once more than its trim threshold is free. PDSAC, the network and ICP
-allocate and free a few MB per stage, so by default every registration maps fresh pages and faults them
-in again: 1,000-2,200 page faults and 3-11 ms of system time per PDSAC call at N = 512 (more when the
-machine is loaded), and a fifth to a third of a training process's CPU time in the kernel.
-`retain_freed_memory` serves every block from the heap (no mappings: glibc still maps when the heap cannot
-grow) and keeps freed memory there for reuse: after it, PDSAC runs without page faults
-(`test_memory.py`), and 15 training iterations fault 7x less (sys time 6.9 -> 1.6 s). The cost is that
+top of the heap to the system once more than its trim threshold is free. The network, ICP and training's
+PDSAC allocate and free a few MB per stage, so by default every call maps fresh pages and faults them in
+again: training's PDSAC at N = 512 faults about 4,200 pages per call, and a fifth to a third of a training
+process's CPU time went to the kernel. `retain_freed_memory` serves every block from the heap (no mappings:
+glibc still maps when the heap cannot grow) and keeps freed memory there for reuse: after it, training's
+PDSAC faults 16x fewer pages (`test_memory.py`), and 15 training iterations fault 7x less (sys time 6.9 ->
+1.6 s). Inference's PDSAC (compiled, `genreg_core.kernels`) allocates no large table and faults none either
+way. The cost is that
 the resident size stays at its peak instead of shrinking between registrations.
 
 `genreg-train`, `genreg-bench`, `register_node` and the benchmark scripts call it at start-up; a program
