@@ -477,6 +477,41 @@ def transform_rows(T: np.ndarray, points: np.ndarray) -> np.ndarray:
     return out
 
 
+@njit(**_OPTIONS)
+def weighted_sets(cdf: np.ndarray, w: np.ndarray, u: np.ndarray) -> np.ndarray:
+    """`pdsac.sample_weighted_sequential`'s mapping of uniform draws u (k, B, m) to (B, m, k) minimal sets,
+    ascending: draw j is u_j times the mass not yet taken, moved past the taken points' intervals
+    [cdf_i - w_i, cdf_i) (ascending), then found in the cumulative weights cdf (B, N) (float64, as given)."""
+    k, B, m = u.shape
+    N = cdf.shape[1]
+    out = np.empty((B, m, k), dtype=np.int64)
+    for b in range(B):
+        for s in range(m):
+            picks = out[b, s]
+            left = cdf[b, N - 1]
+            for j in range(k):
+                x = u[j, b, s] * left
+                for i in range(j):
+                    t = picks[i]
+                    if x >= cdf[b, t] - w[b, t]:
+                        x = x + w[b, t]
+                lo, hi = 0, N  # searchsorted, right: the first index whose cdf exceeds x
+                while lo < hi:
+                    mid = (lo + hi) // 2
+                    if cdf[b, mid] <= x:
+                        lo = mid + 1
+                    else:
+                        hi = mid
+                r = min(lo, N - 1)
+                left = left - w[b, r]
+                slot = j  # keep the picks ascending
+                while slot > 0 and picks[slot - 1] > r:
+                    picks[slot] = picks[slot - 1]
+                    slot -= 1
+                picks[slot] = r
+    return out
+
+
 def compile_all() -> None:
     """Compile (or load from numba's cache) every kernel for the array types the pipeline passes, on tiny
     inputs: a cold compile takes about half a minute, a cached load about a second. `scripts/setup.sh` runs
@@ -497,6 +532,8 @@ def compile_all() -> None:
     truncated_scores(hypotheses, rows, rows, np.ones((1, 32), dtype=f32), 0.1)
     consensus(hypotheses, cloud, cloud, np.ones((1, 32), dtype=f32), 0.1, np.array([0.1]))
     plane_normals(cloud[0].astype(f64), graph[0])
+    weights = np.ones((1, 32))
+    weighted_sets(np.cumsum(weights, axis=1), weights, rng.random((3, 1, 4)))
 
 
 if __name__ == "__main__":

@@ -215,6 +215,14 @@ def test_compiled_consensus_equals_pdsacs_torch_steps(monkeypatch: pytest.Monkey
     assert torch.allclose(compiled[0], T, atol=0.02)  # and both found the motion
 
 
+def test_compiled_weighted_sets_equal_the_torch_mapping_of_the_same_draws(monkeypatch: pytest.MonkeyPatch):
+    weights = torch.rand(2, 700)
+    weights[:, 300:500] = 1e-9  # floored at 1e-6: still drawable, rarely
+    compiled = sample_weighted_sequential(weights, 512, 4, torch.Generator().manual_seed(3))
+    monkeypatch.setattr(kernels, "usable", lambda *tensors: False)
+    assert torch.equal(compiled, sample_weighted_sequential(weights, 512, 4, torch.Generator().manual_seed(3)))
+
+
 def test_compiled_invariant_geometry_equals_the_torch_form(monkeypatch: pytest.MonkeyPatch):
     torch.manual_seed(0)
     points = torch.rand(2, 256, 3) - 0.5
