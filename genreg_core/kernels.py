@@ -274,6 +274,27 @@ def neighbour_max(values: np.ndarray, neighbours: np.ndarray) -> np.ndarray:
     return out
 
 
+@njit(**_OPTIONS, inline="always")
+def _longest_cross(m00: float, m01: float, m02: float, m11: float, m12: float, m22: float
+                   ) -> tuple[float, float, float, float]:
+    """The longest of the cross products r0 x r1, r0 x r2, r1 x r2 of the rows of a symmetric 3x3 matrix M
+    (given by its upper triangle) and its squared length: for M = C - lambda I with lambda an eigenvalue of C,
+    an (unnormalised) eigenvector for it, the longest being the best conditioned."""
+    best, v0, v1, v2 = -1.0, 0.0, 0.0, 0.0
+    for c in range(3):
+        if c == 0:
+            u0, u1, u2, w0, w1, w2 = m00, m01, m02, m01, m11, m12
+        elif c == 1:
+            u0, u1, u2, w0, w1, w2 = m00, m01, m02, m02, m12, m22
+        else:
+            u0, u1, u2, w0, w1, w2 = m01, m11, m12, m02, m12, m22
+        x0, x1, x2 = u1 * w2 - u2 * w1, u2 * w0 - u0 * w2, u0 * w1 - u1 * w0
+        length = x0 * x0 + x1 * x1 + x2 * x2
+        if length > best:
+            best, v0, v1, v2 = length, x0, x1, x2
+    return v0, v1, v2, best
+
+
 @njit(**_OPTIONS)
 def invariant_geometry(points: np.ndarray, neighbours: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """`model.invariant.invariant_geometry` of (B, N, 3) clouds on their kNN graph (B, N, k), the same formulas:
@@ -315,20 +336,8 @@ def invariant_geometry(points: np.ndarray, neighbours: np.ndarray) -> tuple[np.n
             phi = math.acos(min(max(ratio, -1.0), 1.0)) / 3
             largest, smallest = q + 2 * p * math.cos(phi), q + 2 * p * math.cos(phi + third)
             evals = (smallest, 3 * q - smallest - largest, largest)
-            r00, r11, r22 = a00 - smallest, a11 - smallest, a22 - smallest  # rows of cov - smallest I
-            best, v0, v1, v2 = -1.0, 0.0, 0.0, 0.0
-            for c in range(3):  # r0 x r1, r0 x r2, r1 x r2: the longest is the best conditioned
-                if c == 0:
-                    u0, u1, u2, w0, w1, w2 = r00, a01, a02, a01, r11, a12
-                elif c == 1:
-                    u0, u1, u2, w0, w1, w2 = r00, a01, a02, a02, a12, r22
-                else:
-                    u0, u1, u2, w0, w1, w2 = a01, r11, a12, a02, a12, r22
-                c0, c1, c2 = u1 * w2 - u2 * w1, u2 * w0 - u0 * w2, u0 * w1 - u1 * w0
-                length = math.sqrt(c0 * c0 + c1 * c1 + c2 * c2)
-                if length > best:
-                    best, v0, v1, v2 = length, c0, c1, c2
-            best = max(best, 1e-300)
+            v0, v1, v2, best = _longest_cross(a00 - smallest, a01, a02, a11 - smallest, a12, a22 - smallest)
+            best = max(math.sqrt(best), 1e-300)
             normals[b, i, 0], normals[b, i, 1], normals[b, i, 2] = v0 / best, v1 / best, v2 / best
             for c in range(3):
                 point[b, i, c] = math.sqrt(max(dtype.type(evals[c]), 0.0))
@@ -442,19 +451,7 @@ def plane_normals(points: np.ndarray, neighbours: np.ndarray) -> np.ndarray:
         p = p if p != 0 else 1.0  # isotropic: any direction will do
         det = b00 * (b11 * b22 - c12 * c12) - c01 * (c01 * b22 - c12 * c02) + c02 * (c01 * c12 - b11 * c02)
         smallest = q + 2 * p * math.cos(math.acos(min(max(det / (2 * p ** 3), -1.0), 1.0)) / 3 + 2 * math.pi / 3)
-        r00, r11, r22 = c00 - smallest, c11 - smallest, c22 - smallest
-        best, v0, v1, v2 = 0.0, 0.0, 0.0, 0.0
-        for c in range(3):  # r0 x r1, r0 x r2, r1 x r2: the longest is the best conditioned
-            if c == 0:
-                u0, u1, u2, w0, w1, w2 = r00, c01, c02, c01, r11, c12
-            elif c == 1:
-                u0, u1, u2, w0, w1, w2 = r00, c01, c02, c02, c12, r22
-            else:
-                u0, u1, u2, w0, w1, w2 = c01, r11, c12, c02, c12, r22
-            x0, x1, x2 = u1 * w2 - u2 * w1, u2 * w0 - u0 * w2, u0 * w1 - u1 * w0
-            length = x0 * x0 + x1 * x1 + x2 * x2
-            if length > best:
-                best, v0, v1, v2 = length, x0, x1, x2
+        v0, v1, v2, best = _longest_cross(c00 - smallest, c01, c02, c11 - smallest, c12, c22 - smallest)
         if best > 0:
             norm = math.sqrt(best)
             out[r, 0], out[r, 1], out[r, 2] = v0 / norm, v1 / norm, v2 / norm
