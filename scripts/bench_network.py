@@ -13,10 +13,11 @@ times the network stage `model.encode` -> `model.interact` -> `model.generate` w
 - ONNX Runtime (CPU execution provider, intra-op threads = the thread count, no spinning) on the same
   wrapper exported with `torch.onnx.export` (dynamo exporter, the legacy one if that fails).
 
-The kNN graph is built by scipy's cKDTree outside torch (`gcnn.knn_indices` on the centred clouds, exactly
+The kNN graph is built outside torch (`gcnn.knn_indices`, a compiled kernel, on the centred clouds, exactly
 as `encode` builds it); the compiled and ONNX options get it as an input, and their times include that
 query and every numpy <-> torch conversion, so each time covers the same work: float32 (1, 512, 3) torch
-tensors in, torch outputs out. Eager `encode` builds the graph itself.
+tensors in, torch outputs out. Eager `encode` builds the graph itself. Eager inference also runs the
+encoder's other compiled kernels (`genreg_core.kernels`); traced and compiled graphs keep the torch forms.
 
 Method: one subprocess per thread count (`genreg_core.bench.cli.configure_threads` before torch loads,
 `retain_freed_memory`); the ONNX files are exported once, in a subprocess of their own, before them.
