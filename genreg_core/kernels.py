@@ -1,29 +1,33 @@
-"""Compiled inner loops of PDSAC's inference (numba; no gradient, CPU, one thread each, the GIL released).
+"""Compiled inner loops of genreg's inference (numba; no gradient, CPU, one thread each, the GIL released).
 
-PDSAC fits and scores thousands of tiny problems: 1,024 minimal sets of 3-4 correspondences, then each
-hypothesis against all 1,024 correspondences. In torch each is a few hundred small tensor operations or a
-batched LAPACK call that solves one 3x3 matrix after another, so their cost was dispatch, not arithmetic
-(an SVD of 1,024 3x3 matrices: 2 ms; scoring 2 x 512 hypotheses: 2 ms and a 2 MB residual table). Here each
-problem is one pass of scalar code:
+PDSAC and the encoder work on thousands of tiny problems: 1,024 minimal sets of 3-4 correspondences, each
+hypothesis against 1,024 correspondences, 512 neighbourhoods of 20 points per cloud. In torch each is a few
+hundred small tensor operations or a batched LAPACK call that solves one 3x3 matrix after another, so their
+cost was dispatch, not arithmetic (an SVD of 1,024 3x3 matrices: 2 ms; scoring 2 x 512 hypotheses: 2 ms and
+a 2 MB residual table). Here each problem is one pass of scalar code, with the formulas of the torch form:
 
-- `fit_rigid`: the weighted least-squares rigid transform of each set (Kabsch's problem: target ~ R source + t,
-  det R = +1), by Horn's quaternion method in Theobald's QCP form. R is the rotation of the unit quaternion
-  that is the top eigenvector of the symmetric, traceless 4x4 key matrix K of the cross-covariance; its top
-  eigenvalue is the largest root of det(K - x I) = x^4 + c2 x^2 + c1 x + c0, which Newton's method reaches
-  monotonically from the upper bound (sum of both spreads) / 2; the eigenvector is the longest row of the
-  adjugate of K - x I. Float64 inside. Sets whose top eigenvalue repeats (collinear or coinciding points)
-  get one of their equally good rotations, or identity when the adjugate vanishes, as the SVD picks
-  arbitrarily there.
-- `truncated_scores`: s_h = sum_i w_i min(|R_h src_i + t_h - dst_i|, tau) / sum_i w_i without storing the
-  residuals.
+- PDSAC (`pdsac`):
+  - `fit_rigid`: the weighted least-squares rigid transform of each set (Kabsch's problem: target ~ R source +
+    t, det R = +1), by Horn's quaternion method in Theobald's QCP form. R is the rotation of the unit
+    quaternion that is the top eigenvector of the symmetric, traceless 4x4 key matrix K of the
+    cross-covariance; its top eigenvalue is the largest root of det(K - x I) = x^4 + c2 x^2 + c1 x + c0,
+    which Newton's method reaches monotonically from the upper bound (sum of both spreads) / 2; the
+    eigenvector is the longest row of the adjugate of K - x I. Float64 inside. Sets whose top eigenvalue
+    repeats (collinear or coinciding points) get one of their equally good rotations, or identity when the
+    adjugate vanishes, as the SVD picks arbitrarily there.
+  - `truncated_scores`: s_h = sum_i w_i min(|R_h src_i + t_h - dst_i|, tau) / sum_i w_i, without storing the
+    residuals.
+  - `consensus`: the local optimisation of the best hypotheses, the choice among them and the tightened
+    refits.
+  - `weighted_sets`: the inverse-CDF mapping of uniform draws to weighted minimal sets.
+- Encoder (`model.gcnn`, `model.invariant`): `knn_self` (the kNN graph), `invariant_geometry` (the
+  rotation-invariant point-pair features), `neighbour_max` (the edge convolution's max over neighbours).
+- Scores and output (`score`, `prepare`): `plane_normals` (target normals), `transform_rows` (the aligned
+  full-resolution cloud).
 
-- `knn_self`, `neighbour_max`, `invariant_geometry`: the encoder's kNN graph, the edge convolution's max over
-  neighbours and the rotation-invariant point-pair features, one pass each.
-
-Their callers (`geometry.kabsch`, `pdsac.pdsac`, `model.gcnn`, `model.invariant`) use them where `usable`
-says so, and the torch forms elsewhere (training's gradients, other devices, tracing and compiling).
-Compiled on first use and cached beside this file (numba's `cache`).
-"""
+Their callers use them where `usable` says so, and the torch forms elsewhere (training's gradients, other
+devices, tracing and compiling). Compiled on first use and cached beside this file (numba's `cache`):
+`compile_all` does it ahead."""
 
 from __future__ import annotations
 
