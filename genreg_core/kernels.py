@@ -528,6 +528,7 @@ def compile_all() -> None:
         sets = rng.random((4, 3, 3)).astype(dtype)
         fit_rigid(sets, sets, np.ones((4, 3), dtype=dtype))
         transform_rows(np.eye(4, dtype=dtype), cloud[0].astype(dtype))
+        transform_rows(np.eye(4, dtype=dtype), np.ones((32, 4), dtype=dtype)[:, :3])  # a strided view (x y z of more)
     hypotheses = np.tile(np.eye(4, dtype=f32), (1, 2, 1, 1))
     rows = np.ascontiguousarray(cloud.transpose(0, 2, 1))
     truncated_scores(hypotheses, rows, rows, np.ones((1, 32), dtype=f32), 0.1)
