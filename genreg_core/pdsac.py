@@ -232,6 +232,12 @@ def truncated_score(res: torch.Tensor, threshold: float, weights: torch.Tensor |
     return (truncated * w).sum(dim=-1) / w.sum(dim=-1).clamp_min(1e-9)
 
 
+def refit_limits(threshold: float, rounds: int = 2, tightening: Sequence[float] = ()) -> tuple[float, ...]:
+    """The inlier thresholds of `refit_on_inliers`' rounds, in order: `rounds` at `threshold`, then one at each
+    `tightening` fraction of it."""
+    return (threshold,) * rounds + tuple(threshold * f for f in tightening)
+
+
 def refit_on_inliers(
     T: torch.Tensor, src: torch.Tensor, dst: torch.Tensor, threshold: float, rounds: int = 2,
     weights: torch.Tensor | None = None, tightening: Sequence[float] = (),
@@ -240,7 +246,7 @@ def refit_on_inliers(
     `tightening` fraction of it; inliers weighted by `weights` (B, N) if given), keeping T where too few
     remain. Returns T and its inliers at `threshold`."""
     res = residuals(T, src, dst)
-    for limit in (threshold,) * rounds + tuple(threshold * f for f in tightening):
+    for limit in refit_limits(threshold, rounds, tightening):
         inliers = res < limit
         enough = inliers.sum(dim=-1) >= 3
         w = inliers.to(src.dtype) if weights is None else inliers.to(src.dtype) * weights
@@ -332,7 +338,7 @@ def pdsac_bidirectional(
     w = None if overlap is None else torch.cat([o_a, o_b], dim=1)
     best = best_hypotheses(res_a, res_b, cfg.local_candidates)
     if kernels.usable(src, dst, w, best):  # the same steps, compiled
-        limits = [cfg.tau, cfg.tau, *(cfg.tau * f for f in cfg.refit_tightening)] if cfg.refit else []
+        limits = refit_limits(cfg.tau, tightening=cfg.refit_tightening) if cfg.refit else ()
         ones = torch.ones(src.shape[:2], dtype=src.dtype) if w is None else w.to(src.dtype)
         T, inliers = kernels.consensus(*(x.contiguous().numpy() for x in (best, src, dst, ones)), cfg.tau,
                                        np.asarray(limits, dtype=np.float64))
