@@ -129,6 +129,10 @@ class NodeConfig:
     autostart: bool = setting(True, "Configure and activate at start (lifecycle); false: wait for the "
                               "lifecycle transitions (<node>/change_state).", start_up=True)
     model: ModelParams = setting(ModelParams(), "The network.")
+    workers: int = setting(1, "Pairs registered at once, each in its own worker process with its own copy of "
+                           "the model (about 0.4 GB each); 1: in the node's process. Processes, not threads: "
+                           "small_gicp and Open3D hold Python's interpreter lock. More than the CPU cores "
+                           "do not help.", low=1, high=64, start_up=True)
     pdsac: PDSACConfig = setting(PDSACConfig(), "PDSAC (the core's defaults).")
     # The node refines with point-to-point ICP, 20 iterations; the API's default is no refinement.
     refine: RefineConfig = setting(RefineConfig(method="point_to_point", max_iterations=20),
@@ -209,9 +213,11 @@ SETTINGS: tuple[Setting, ...] = settings(NodeConfig)
 # ----------------------------------------------------------------------------- the params files
 CONFIG_DIR = Path(__file__).resolve().parent.parent / "config"
 # The shipped params files: name -> (what it is for, the settings that differ from NodeConfig's defaults).
-# Scenes: the scene model, small_gicp's GICP (best of the refinements on real pairs, MODEL_CARD.md) and the
-# scene PDSAC settings (genreg_core.config.SCENE_PDSAC)
-SCENE_OVERRIDES = {"model.checkpoint": "7scenes", "refine.method": "gicp", "pdsac.sample_size": SCENE_PDSAC.sample_size}
+# Scenes: the scene model, small_gicp's GICP (best of the refinements on real pairs, MODEL_CARD.md), the
+# scene PDSAC settings (genreg_core.config.SCENE_PDSAC); two workers: a 30 Hz depth camera's full-resolution
+# pairs need both cores (issue 15, scripts/bench_node.py soak)
+SCENE_OVERRIDES = {"model.checkpoint": "7scenes", "refine.method": "gicp", "pdsac.sample_size": SCENE_PDSAC.sample_size,
+                   "workers": 2}
 PROFILES: dict[str, tuple[str, dict[str, Any]]] = {
     "genreg.yaml": ("depth-camera and indoor scenes (the scene model 7scenes)", SCENE_OVERRIDES),
     "genreg_objects.yaml": ("object models (the object model modelnet40, clouds of a single object)", {}),

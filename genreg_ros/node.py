@@ -26,8 +26,10 @@ activate subscribes and enables the publishers; deactivate unsubscribes; cleanup
 `autostart` (default true) configures and activates at start, so the node runs as a plain node.
 
 Threads: subscription callbacks only check headers and pair stamps (O(1) in the cloud size); a worker
-thread decodes, registers and publishes. A newer pair replaces an older waiting one, so latency stays one
-registration at most and memory is bounded by the sync queues. Bad input is a throttled warning plus a
+thread decodes and registers, a publisher thread encodes and publishes. With `workers` > 1 there is one
+worker thread per worker process (`genreg_ros.workers`: the registration itself runs there) and results
+are published in the order their pairs were taken. A newer pair replaces an older waiting one, so latency
+stays one registration at most and memory is bounded by the sync queues. Bad input is a throttled warning plus a
 counted drop; the node carries on. A stamp more than `sync.time_jump` s older than its topic's newest
 (bag loop, simulator reset) resets pairing, tracking and topic guesses.
 
@@ -37,7 +39,6 @@ counters and /diagnostics: `genreg_ros.diagnostics`; messages: `genreg_ros.point
 
 from __future__ import annotations
 
-import queue
 import re
 import sys
 import threading
@@ -77,7 +78,8 @@ from genreg_ros.pointcloud2 import (
     transform_cloud,
     xyz_to_msg,
 )
-from genreg_ros.sync import SOURCE, TARGET, LatestSlot, Pair, PairSync
+from genreg_ros.sync import SOURCE, TARGET, InOrder, LatestSlot, Pair, PairSync
+from genreg_ros.workers import RemoteRegistrar
 
 NODE_NAME = "register_node"
 WARN_THROTTLE_S = 2.0  # per drop/failure reason
@@ -161,13 +163,13 @@ class RegisterNode(LifecycleNode):
             self.destroy_node()
             raise StartupError(str(exc)) from None
         c = self._config
-        self._lock = threading.Lock()  # guards _sync, _newest, _guess, _last_T, _generation
+        self._lock = threading.Lock()  # guards _sync, _newest, _guess, _last_T*, _generation
         self._stats = Stats()
         self._warned: dict[str, float] = {}
         self._stale: set[str] = set()
         self._matched_since: dict[str, float | None] = {SOURCE: None, TARGET: None}
         self._silent_warned: set[str] = set()
-        self._registrar = None
+        self._registrars: list[Any] = []  # one per worker: the core's Registrar, or RemoteRegistrars
         self._tf_broadcaster = None
         self._fixed: _FixedTarget | None = None
         self._startup_error = ""
@@ -177,12 +179,15 @@ class RegisterNode(LifecycleNode):
         self._guess: _Guess | None = None
         self._last_T: np.ndarray | None = None
         self._last_T_time = -np.inf
+        self._last_T_stamp = -1  # source stamp (ns) of _last_T: with several workers results finish out of order
         self._target_cache: tuple[Any, np.ndarray, PreprocessConfig] | None = None
         self._slot = LatestSlot()
-        self._worker: threading.Thread | None = None
+        self._take_lock = threading.Lock()  # a pair's ticket is taken with the pair: publication order
+        self._workers: list[threading.Thread] = []
         # Encoding and publishing the aligned cloud run on their own thread, so they overlap the next
-        # registration; the one-place queue makes the worker wait rather than let results pile up.
-        self._outbox: queue.Queue[_Publication | None] = queue.Queue(maxsize=1)
+        # registration; the outbox holds one finished result per worker (workers wait rather than let
+        # results pile up) and hands them on in the order the pairs were taken.
+        self._outbox = InOrder()
         self._publisher: threading.Thread | None = None
         self._subs: dict[str, Any] = {}
         self._pubs: dict[str, Any] = {}
@@ -212,8 +217,9 @@ class RegisterNode(LifecycleNode):
 
     @property
     def registrar(self):
-        """The core's `Registrar` the node registers with (None before configure)."""
-        return self._registrar
+        """The core's `Registrar` the node registers with, or with `workers` > 1 the first worker's
+        `RemoteRegistrar` (None before configure)."""
+        return self._registrars[0] if self._registrars else None
 
     @property
     def state(self) -> str:
@@ -224,13 +230,13 @@ class RegisterNode(LifecycleNode):
     def on_configure(self, state: LifecycleState) -> TransitionCallbackReturn:
         c = self._config
         try:
-            self._registrar = self._load_registrar(c)
+            self._registrars = self._load_registrars(c)
             self._tf_broadcaster = self._make_tf_broadcaster() if c.publish_tf else None
             self._fixed = self._load_target_file(c) if c.target_file else None
         except Exception as exc:  # noqa: BLE001 (rclpy would swallow it: report it as the start-up error)
             self._startup_error = str(exc) if isinstance(exc, StartupError) else \
                 f"configure failed: {type(exc).__name__}: {exc}"
-            self._registrar = None
+            self._close_registrars()
             if not c.autostart:  # with autostart, main() prints it as the one start-up error line
                 self.get_logger().error(f"configure failed: {exc}")
             return FAILURE
@@ -243,11 +249,12 @@ class RegisterNode(LifecycleNode):
             self._sync = self._new_sync(c)  # latest_target with the file's cloud, if any
         self._reset_state("configure", count=False)
         self._slot = LatestSlot()
-        self._worker = threading.Thread(target=self._work, name="genreg_worker", daemon=True)
-        self._outbox = queue.Queue(maxsize=1)
+        self._workers = [threading.Thread(target=self._work, args=(r,), name=f"genreg_worker_{k}", daemon=True)
+                         for k, r in enumerate(self._registrars)]
+        self._outbox = InOrder(limit=len(self._workers))
         self._publisher = threading.Thread(target=self._publish_loop, name="genreg_publisher", daemon=True)
-        self._worker.start()
-        self._publisher.start()
+        for thread in (*self._workers, self._publisher):
+            thread.start()
         return super().on_configure(state)
 
     def on_activate(self, state: LifecycleState) -> TransitionCallbackReturn:
@@ -273,7 +280,8 @@ class RegisterNode(LifecycleNode):
         target = f"file {c.target_file} ({len(self._fixed.points)} points, frame {self._fixed.frame})" \
             if self._fixed is not None else self._subs[TARGET].topic_name
         self.get_logger().info(
-            f"ready: model {c.model.checkpoint} (N={self._registrar.num_points}, {c.registration.device}), "
+            f"ready: model {c.model.checkpoint} (N={self.registrar.num_points}, {c.registration.device}, "
+            f"{self._worker_text(c)}), "
             f"sync {self._sync.mode} slop {c.sync.slop} s, subscription QoS {c.qos.reliability}; "
             f"listening on {self._subs[SOURCE].topic_name}, target {target}")
         return super().on_activate(state)
@@ -300,35 +308,61 @@ class RegisterNode(LifecycleNode):
         self._subs.clear()
 
     def _release(self) -> None:
-        """Stop the worker (waits for the pair being registered), destroy the publishers, drop the model."""
+        """Stop the workers (waits for the pairs being registered), destroy the publishers, drop the model
+        (ends the worker processes)."""
         self._slot.close()
-        if self._worker is not None:
-            self._worker.join(timeout=10.0)
-            self._worker = None
-        if self._publisher is not None:  # publishes what the worker handed over, then stops
-            self._outbox.put(None)
+        for worker in self._workers:
+            worker.join(timeout=10.0)
+        self._workers = []
+        if self._publisher is not None:  # publishes what the workers handed over, then stops
+            self._outbox.close()
             self._publisher.join(timeout=10.0)
             self._publisher = None
         for pub in self._pubs.values():
             self.destroy_lifecycle_publisher(pub)
         self._pubs.clear()
-        self._registrar, self._tf_broadcaster, self._fixed, self._target_cache = None, None, None, None
+        self._close_registrars()
+        self._tf_broadcaster, self._fixed, self._target_cache = None, None, None
         self._reset_state("cleanup", count=False)
 
     # ----------------------------------------------------------------- start-up
-    def _load_registrar(self, c: NodeConfig):
+    def _load_registrars(self, c: NodeConfig) -> list[Any]:
+        """One registrar per worker: the core's Registrar in this process (workers 1), else a worker process
+        each (started side by side)."""
         from genreg_core import kernels
         from genreg_core.registration import Registrar
 
+        num_points = c.model.num_points or None
+        remote = [RemoteRegistrar(c.model.checkpoint, c.registration_config(), num_points, f"genreg_worker_{k}")
+                  for k in range(c.workers)] if c.workers > 1 else []
         try:
-            registrar = Registrar.from_checkpoint(c.model.checkpoint, config=c.registration_config(),
-                                                  num_points=c.model.num_points or None)
-            kernels.compile_all()  # the compiled kernels now, not at the first registration
-            return registrar
-        except GenRegError as exc:
-            raise StartupError(str(exc)) from None
-        except (RuntimeError, AssertionError, OSError) as exc:  # e.g. a cuda device on a CPU-only torch
-            raise StartupError(f"cannot load model {c.model.checkpoint!r}: {exc}") from None
+            for r in remote:
+                r.start()
+            kernels.compile_all()  # the compiled kernels now (decoding uses them), not at the first pair
+            if not remote:
+                return [Registrar.from_checkpoint(c.model.checkpoint, config=c.registration_config(),
+                                                  num_points=num_points)]
+            for r in remote:
+                r.wait_ready()
+            return remote
+        except Exception as exc:
+            for r in remote:
+                r.close()
+            if isinstance(exc, GenRegError):
+                raise StartupError(str(exc)) from None
+            if isinstance(exc, (RuntimeError, AssertionError, OSError)):  # e.g. a cuda device on a CPU-only torch
+                raise StartupError(f"cannot load model {c.model.checkpoint!r}: {exc}") from None
+            raise
+
+    def _close_registrars(self) -> None:
+        for r in self._registrars:
+            if isinstance(r, RemoteRegistrar):
+                r.close()
+        self._registrars = []
+
+    @staticmethod
+    def _worker_text(c: NodeConfig) -> str:
+        return f"{c.workers} worker processes" if c.workers > 1 else "registering in the node's process"
 
     def _make_tf_broadcaster(self):
         try:
@@ -375,7 +409,7 @@ class RegisterNode(LifecycleNode):
         with self._lock:
             self._sync.clear(keep_latest_target=self._sync.mode == "latest_target" and why != "cleanup")
             self._newest = {SOURCE: None, TARGET: None}
-            self._guess, self._last_T, self._last_T_time = None, None, -np.inf
+            self._guess, self._last_T, self._last_T_time, self._last_T_stamp = None, None, -np.inf, -1
             self._generation += 1
         if self._slot.put(None) is not None:
             self._drop("reset", f"a waiting pair was discarded ({why})")
@@ -455,29 +489,34 @@ class RegisterNode(LifecycleNode):
             self._guess = _Guess(T, parent, child, time.monotonic(), origin)
 
     # ----------------------------------------------------------------- worker
-    def _work(self) -> None:
-        slot = self._slot
+    def _work(self, registrar: Any) -> None:
+        """One worker thread: take the waiting pair (and its place in the publication order), register it
+        with `registrar`, hand the result to the publisher."""
+        slot, outbox = self._slot, self._outbox
         while not slot.closed:
-            pair = slot.take(timeout=0.5)
-            if pair is None:
-                continue
-            self._survive(self._process, pair, "")
+            with self._take_lock:
+                pair = slot.take(timeout=0.5)
+                ticket = outbox.ticket() if pair is not None else -1
+            if pair is not None:
+                outbox.done(ticket, self._survive(lambda p: self._process(p, registrar), pair, ""))
 
-    def _process(self, pair: Pair) -> None:
-        c, registrar, generation = self._config, self._registrar, self._generation
+    def _process(self, pair: Pair, registrar: Any) -> _Publication | None:
+        """Decode, preprocess, register and check one pair: what to publish, or None (dropped or failed:
+        counted)."""
+        c, generation = self._config, self._generation
         src_cloud, tgt_cloud = pair.source, pair.target
         t0 = time.perf_counter()
         try:
             src = read_points(src_cloud.msg, c.max_points)
         except PointCloud2Error as exc:
             self._drop(exc.reason, f"source cloud: {exc}")
-            return
+            return None
         t1 = time.perf_counter()
         try:
             tgt_points, t_tgt = self._decode_target(tgt_cloud, c.max_points, c.preprocess)
         except PointCloud2Error as exc:
             self._drop(exc.reason, f"target cloud: {exc}")
-            return
+            return None
         t2 = time.perf_counter()
         src_points = preprocess(src.points, c.preprocess)
         if registrar.config != (cfg := c.registration_config()):
@@ -490,7 +529,7 @@ class RegisterNode(LifecycleNode):
             result = registrar.register(src_points, tgt_points, initial_guess=guess)
         except GenRegError as exc:
             self._fail(_snake(type(exc).__name__), f"registration failed: {exc}")
-            return
+            return None
         t4 = time.perf_counter()
         T_target_source = result.transformation
         header = Header(stamp=Time(nanoseconds=stamp_ns(src_cloud.msg.header)).to_msg(), frame_id=tgt_cloud.frame)
@@ -505,32 +544,35 @@ class RegisterNode(LifecycleNode):
             result, header, src_cloud.frame, guess_origin, latency, reject[1] if reject else "", low_confidence))
         if reject:
             self._fail(*reject)
-            return
+            return None
         if low_confidence:  # published, yet flagged: a user must not mistake it for a good result
             self._warn("low_confidence", f"published a low-confidence result: confidence {result.confidence:.2f} < "
                        f"warn_confidence {c.warn_confidence} (fitness {result.fitness:.2f})")
         with self._lock:
-            if generation == self._generation:  # no reset since the pair was taken
-                self._last_T, self._last_T_time = T_target_source, time.monotonic()
-        self._outbox.put(_Publication(header, src, src_cloud.frame, result, latency, (t1 - t0) + t_tgt, {
+            # no reset since the pair was taken, and no newer pair's result (workers finish out of order)
+            if generation == self._generation and pair.source_stamp >= self._last_T_stamp:
+                self._last_T, self._last_T_time, self._last_T_stamp = T_target_source, time.monotonic(), pair.source_stamp
+        return _Publication(header, src, src_cloud.frame, result, latency, (t1 - t0) + t_tgt, {
             "fitness": result.fitness, "confidence": result.confidence, "inlier_rmse_m": result.inlier_rmse,
             "decode_ms": 1e3 * ((t1 - t0) + t_tgt), "preprocess_ms": 1e3 * ((t3 - t2) + (t2 - t1 - t_tgt)),
             "register_ms": 1e3 * (t4 - t3),
             "points_in": float(src.num_input), "points_registered": float(len(src_points)),
             "points_target": float(len(tgt_points)),
             "initial_guess_won": float(result.start == "initial_guess"),  # refinement from the guess won
-        }, low_confidence, src_points is src.points))
+        }, low_confidence, src_points is src.points)
 
     def _publish_loop(self) -> None:
         while (job := self._outbox.get()) is not None:
             self._survive(self._publish, job, " while publishing")
 
-    def _survive(self, step: Any, item: Any, during: str) -> None:
-        """step(item), counting any exception as a failure: the worker and publisher threads never die."""
+    def _survive(self, step: Any, item: Any, during: str) -> Any:
+        """step(item), counting any exception as a failure (and returning None): the worker and publisher
+        threads never die."""
         try:
-            step(item)
+            return step(item)
         except Exception as exc:  # noqa: BLE001 (keep the thread alive whatever one item does)
             self._fail("internal_error", f"unexpected {type(exc).__name__}{during}: {exc}")
+            return None
 
     def _publish(self, job: _Publication) -> None:
         """Encode and publish one result (aligned cloud, transform, pose, tf, generated cloud), then count it."""

@@ -169,3 +169,53 @@ class LatestSlot:
     @property
     def closed(self) -> bool:
         return self._closed
+
+
+class InOrder:
+    """Results handed from several workers to one consumer in the order their work was taken.
+
+    A worker takes a `ticket()` when it takes its work and hands its result (None: nothing to hand on)
+    with `done(ticket, item)`; `get()` returns the items in ticket order, skipping the Nones, so a pair
+    that finished early waits for the one taken before it. At most `limit` finished items wait: `done`
+    blocks beyond that, except for the ticket the consumer needs next. Thread-safe.
+    """
+
+    def __init__(self, limit: int = 1) -> None:
+        self._cond = threading.Condition()
+        self._limit = limit
+        self._issued = 0
+        self._next = 0
+        self._done: dict[int, Any] = {}
+        self._closed = False
+
+    def ticket(self) -> int:
+        with self._cond:
+            self._issued += 1
+            return self._issued - 1
+
+    def done(self, ticket: int, item: Any) -> None:
+        with self._cond:
+            while len(self._done) >= self._limit and ticket != self._next and not self._closed:
+                self._cond.wait()
+            self._done[ticket] = item
+            self._cond.notify_all()
+
+    def get(self) -> Any:
+        """The next item in ticket order (waits for it); None once closed and nothing more is ready."""
+        with self._cond:
+            while True:
+                while self._next in self._done:
+                    item = self._done.pop(self._next)
+                    self._next += 1
+                    self._cond.notify_all()
+                    if item is not None:
+                        return item
+                if self._closed:
+                    return None
+                self._cond.wait()
+
+    def close(self) -> None:
+        """Let `get` return None once the finished items are handed out (a ticket never done is not waited for)."""
+        with self._cond:
+            self._closed = True
+            self._cond.notify_all()

@@ -260,17 +260,43 @@ def load_clouds(args) -> CloudSet:
                      f"folder, got {args.clouds!r}")
 
 
+def process_tree(pid: int) -> list[int]:
+    """`pid` and its descendants (the node's worker processes), from /proc."""
+    tree, k = [pid], 0
+    while k < len(tree):
+        for task in Path(f"/proc/{tree[k]}/task").glob("*"):
+            try:
+                tree += [int(c) for c in (task / "children").read_text().split()]
+            except OSError:  # the task ended meanwhile
+                pass
+        k += 1
+    return tree
+
+
+def _proc_sum(pid: int, one) -> float:
+    total = 0.0
+    for p in process_tree(pid):
+        try:
+            total += one(p)
+        except (OSError, ValueError):  # ended meanwhile
+            pass
+    return total
+
+
 def rss_mb(pid: int) -> float:
-    for line in Path(f"/proc/{pid}/status").read_text().splitlines():
-        if line.startswith("VmRSS:"):
-            return int(line.split()[1]) / 1024
-    return float("nan")
+    """Resident memory of the node and its worker processes, MB (shared pages counted in each)."""
+    def one(p: int) -> float:
+        line = next(x for x in Path(f"/proc/{p}/status").read_text().splitlines() if x.startswith("VmRSS:"))
+        return int(line.split()[1]) / 1024
+    return _proc_sum(pid, one)
 
 
 def cpu_seconds(pid: int) -> float:
-    """User + system CPU time of a process (all its threads), s."""
-    fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
-    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+    """User + system CPU time of the node and its worker processes (all their threads), s."""
+    def one(p: int) -> float:
+        fields = Path(f"/proc/{p}/stat").read_text().rsplit(")", 1)[1].split()
+        return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+    return _proc_sum(pid, one)
 
 
 def percentiles(values) -> dict[str, float]:

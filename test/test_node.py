@@ -345,6 +345,36 @@ def test_registers_a_redkitchen_pair_with_the_shipped_model(shared):
     assert float(v["last.confidence"]) > 0.5
 
 
+def test_two_worker_processes_publish_in_order_the_apis_results(ns):
+    """workers 2: pairs sent back to back register side by side in two processes; every sent pair is
+    registered or superseded, the outputs come in the order the pairs were sent, and each transform is the
+    in-process API's for its pair (and near the ground truth)."""
+    from genreg_core.registration import Registrar
+
+    pairs = [redkitchen_pair(801 + k, 800 + k, 300.0 + k) for k in range(5)]
+    with running_node(ns, SHIPPED_MODEL, workers=2) as h:
+        assert h.node.config.workers == 2 and h.node.registrar.alive
+        before = h.counters()
+        for src, tgt, _, _ in pairs:
+            h.send(src, tgt)
+        h.wait(lambda: len(h.transforms) + h.node.stats.dropped.get("superseded", 0) >= len(pairs), 60.0,
+               "every pair registered or superseded")
+        time.sleep(0.3)
+        assert h.delta(before, "registered") == len(h.transforms) >= 3 and h.delta(before, "failed") == 0
+        with h.lock:
+            transforms = list(h.transforms)
+        stamps = [(m.header.stamp.sec, m.header.stamp.nanosec) for m in transforms]
+        assert stamps == sorted(stamps)
+        api = Registrar.from_checkpoint(SHIPPED_MODEL, h.node.config.registration_config())
+        by_stamp = {(src.header.stamp.sec, src.header.stamp.nanosec): (src, tgt, T) for src, tgt, _, T in pairs}
+        for msg in transforms:
+            src, tgt, T_true = by_stamp[(msg.header.stamp.sec, msg.header.stamp.nanosec)]
+            expected = api.register(read_points(src).points, read_points(tgt).points).transformation
+            np.testing.assert_allclose(msg_to_matrix(msg), expected, atol=1e-6)
+            rot_err, trans_err = errors(msg_to_matrix(msg), T_true)
+            assert rot_err < 0.6 and trans_err < 0.01, (rot_err, trans_err)
+
+
 def test_initial_guess_parameter_then_topic(ns, untrained_checkpoint):
     with running_node(ns, untrained_checkpoint, initial_guess=guess_param(BIG_T @ GUESS_ERROR)) as h:
         src, tgt, rec = make_pair(BIG_T, 200.0, seed=1)
@@ -686,6 +716,8 @@ def test_cross_process_large_clouds_with_both_qos_settings(ns, reliability, tmp_
     """The node in its own process, 150k-point clouds (2.4 MB each way) over the shipped Fast DDS profile."""
     namespace = f"{ns}_{reliability}"
     params = {**TEST_PARAMS, "model.checkpoint": SHIPPED_MODEL, "qos.reliability": reliability}
+    if reliability == "best_effort":  # also: worker processes end cleanly with the node (SIGINT)
+        params["workers"] = 2
     args = [a for k, v in params.items() for a in ("-p", f"{k}:={v}")]
     log = (tmp_path / "node.log").open("w+")
     proc = subprocess.Popen(node_cmd("-r", f"__ns:={namespace}", *args), stdout=log, stderr=subprocess.STDOUT)

@@ -137,3 +137,41 @@ def test_latest_slot_wakes_worker_and_close_unblocks():
     slot.close()
     th.join(timeout=2)
     assert got == [1] and not th.is_alive()
+
+
+def test_in_order_hands_results_on_in_ticket_order_and_skips_nones():
+    from genreg_ros.sync import InOrder
+
+    box = InOrder(limit=2)
+    tickets = [box.ticket() for _ in range(4)]
+    assert tickets == [0, 1, 2, 3]
+    got: list = []
+    reader = threading.Thread(target=lambda: got.extend(iter(box.get, None)))
+    reader.start()
+    box.done(2, "c")  # finished early: waits for 0 and 1
+    box.done(1, None)  # a dropped pair: nothing to publish
+    time.sleep(0.05)
+    assert got == []
+    box.done(0, "a")
+    box.done(3, "d")
+    time.sleep(0.05)
+    box.close()
+    reader.join(timeout=2)
+    assert got == ["a", "c", "d"] and not reader.is_alive()
+
+
+def test_in_order_done_waits_beyond_its_limit_except_for_the_next_ticket():
+    from genreg_ros.sync import InOrder
+
+    box = InOrder(limit=1)
+    t0, t1, t2 = box.ticket(), box.ticket(), box.ticket()
+    box.done(t1, "b")  # one waiting: the limit
+    finished = threading.Event()
+    late = threading.Thread(target=lambda: (box.done(t2, "c"), finished.set()))
+    late.start()
+    time.sleep(0.05)
+    assert not finished.is_set()  # t2 waits for room
+    box.done(t0, "a")  # the ticket the consumer needs next never waits
+    assert [box.get(), box.get()] == ["a", "b"]
+    assert finished.wait(2) and box.get() == "c"
+    late.join()
