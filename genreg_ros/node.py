@@ -281,7 +281,7 @@ class RegisterNode(LifecycleNode):
             if self._fixed is not None else self._subs[TARGET].topic_name
         self.get_logger().info(
             f"ready: model {c.model.checkpoint} (N={self.registrar.num_points}, {c.registration.device}, "
-            f"{self._worker_text(c)}), "
+            f"{f'{c.workers} worker processes' if c.workers > 1 else 'registering in this process'}), "
             f"sync {self._sync.mode} slop {c.sync.slop} s, subscription QoS {c.qos.reliability}; "
             f"listening on {self._subs[SOURCE].topic_name}, target {target}")
         return super().on_activate(state)
@@ -328,41 +328,31 @@ class RegisterNode(LifecycleNode):
     # ----------------------------------------------------------------- start-up
     def _load_registrars(self, c: NodeConfig) -> list[Any]:
         """One registrar per worker: the core's Registrar in this process (workers 1), else a worker process
-        each (started side by side)."""
+        each (started side by side). If loading fails, on_configure closes the processes started."""
         from genreg_core import kernels
         from genreg_core.registration import Registrar
 
         num_points = c.model.num_points or None
-        remote = [RemoteRegistrar(c.model.checkpoint, c.registration_config(), num_points, f"genreg_worker_{k}")
-                  for k in range(c.workers)] if c.workers > 1 else []
+        self._registrars = [RemoteRegistrar(c.model.checkpoint, c.registration_config(), num_points,
+                                            f"genreg_worker_{k}") for k in range(c.workers)] if c.workers > 1 else []
         try:
-            for r in remote:
+            for r in self._registrars:
                 r.start()
             kernels.compile_all()  # the compiled kernels now (decoding uses them), not at the first pair
-            if not remote:
-                return [Registrar.from_checkpoint(c.model.checkpoint, config=c.registration_config(),
-                                                  num_points=num_points)]
-            for r in remote:
+            for r in self._registrars:
                 r.wait_ready()
-            return remote
-        except Exception as exc:
-            for r in remote:
-                r.close()
-            if isinstance(exc, GenRegError):
-                raise StartupError(str(exc)) from None
-            if isinstance(exc, (RuntimeError, AssertionError, OSError)):  # e.g. a cuda device on a CPU-only torch
-                raise StartupError(f"cannot load model {c.model.checkpoint!r}: {exc}") from None
-            raise
+            return self._registrars or [Registrar.from_checkpoint(c.model.checkpoint, config=c.registration_config(),
+                                                                  num_points=num_points)]
+        except GenRegError as exc:
+            raise StartupError(str(exc)) from None
+        except (RuntimeError, AssertionError, OSError) as exc:  # e.g. a cuda device on a CPU-only torch
+            raise StartupError(f"cannot load model {c.model.checkpoint!r}: {exc}") from None
 
     def _close_registrars(self) -> None:
         for r in self._registrars:
             if isinstance(r, RemoteRegistrar):
                 r.close()
         self._registrars = []
-
-    @staticmethod
-    def _worker_text(c: NodeConfig) -> str:
-        return f"{c.workers} worker processes" if c.workers > 1 else "registering in the node's process"
 
     def _make_tf_broadcaster(self):
         try:
