@@ -90,6 +90,27 @@ def test_every_weight_group_of_a_shipped_model_changes_the_output(name, object_p
     assert not torch.allclose(sharper.match_logits[0], ref.match_logits[0])
 
 
+@pytest.mark.parametrize("name", ["modelnet40_partial", "7scenes"])
+def test_folded_inference_of_a_shipped_linear_backbone_gives_the_differentiable_forward(name, object_pairs):
+    """Backbone "dgcnn": inference folds the linear layer F = M h + m into the interaction's first products
+    (`GenRegNet.first_products`). On real pairs it gives the gradient-recording forward's picks exactly and
+    its log weights and overlap logits to float32 rounding."""
+    model, _ = load_checkpoint(name)
+    assert model.config.backbone == "dgcnn"
+    for pair in object_pairs[:8]:
+        a, b = (torch.from_numpy(pair[key])[None] for key in ("source", "target"))
+        reference = model(a, b)  # gradient recorded: F formed, each map on its own
+        with torch.no_grad():
+            assert model.folds_backbone() and model.encode(a, b).f_a.shape[-1] == model.config.gcnn_channels
+            fast = model(a, b)
+        for x, y in zip(fast.match_logits, reference.match_logits, strict=True):
+            assert torch.equal(x.argmax(-1), y.argmax(-1))
+            assert torch.allclose(x, y.detach(), atol=1e-4)
+        for x, y in zip(fast.overlap_logits, reference.overlap_logits, strict=True):
+            assert torch.allclose(x, y.detach(), atol=1e-5)
+        assert torch.allclose(fast.source_generated, reference.source_generated.detach(), atol=1e-5)
+
+
 @pytest.mark.parametrize("name", OBJECT_MODELS)
 def test_shipped_object_model_alone_is_accurate_on_unseen_categories(name, object_pairs):
     reg = Registrar.from_checkpoint(name)  # GenReg alone: network + PDSAC, no refinement

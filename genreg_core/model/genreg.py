@@ -23,6 +23,7 @@ construction. The paper's decoder lives in `genreg_core.model.paper`.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import torch
@@ -59,7 +60,9 @@ class Encoded:
     b0: torch.Tensor  # (B, M, 3) B - c_B
     c_a: torch.Tensor  # (B, 1, 3)
     c_b: torch.Tensor
-    f_a: torch.Tensor  # (B, N, C)
+    # (B, N, C) per-point features F; at inference with backbone "dgcnn" the GCNN features h that F is one
+    # linear layer of (`GenRegNet.first_products` folds that layer into the interaction's first products)
+    f_a: torch.Tensor
     f_b: torch.Tensor  # (B, M, C)
     knn_a: torch.Tensor | None = None  # (B, N, k) each point's k_neighbors nearest in A, nearest first
     knn_b: torch.Tensor | None = None  # (B, M, k) likewise in B
@@ -103,18 +106,12 @@ class SoftPointer(nn.Module):
         """(B, N, C), (B, M, C) features -> log weights (B, N, M), normalised over M."""
         return self.log_weights(self.embed(self.query, f_x), self.embed(self.key, f_y))
 
-    def both(self, f_x: torch.Tensor, f_y: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """(forward(f_x, f_y), forward(f_y, f_x)). Without a gradient and for clouds of one size, each
-        projection runs once on both clouds' rows (one product instead of two)."""
-        if torch.is_grad_enabled() or f_x.shape != f_y.shape:
-            return self(f_x, f_y), self(f_y, f_x)
-        rows = torch.cat([f_x, f_y])
-        (q_x, q_y), (k_x, k_y) = self.embed(self.query, rows).chunk(2), self.embed(self.key, rows).chunk(2)
-        return self.log_weights(q_x, k_y), self.log_weights(q_y, k_x)
-
     def embed(self, projection: nn.Linear, f: torch.Tensor) -> torch.Tensor:
         """Unit query or key vectors of each cloud (B, N, dim), centred over the cloud first (`centred`)."""
-        x = projection(f)
+        return self.unit(projection(f))
+
+    def unit(self, x: torch.Tensor) -> torch.Tensor:
+        """Projected queries or keys (B, N, dim) -> unit vectors, centred over the cloud first (`centred`)."""
         if self.centred:  # the component all points share carries no match
             x = x - x.mean(dim=1, keepdim=True)
         return nn.functional.normalize(x, dim=-1)
@@ -184,6 +181,16 @@ class OverlapHead(nn.Module):
         best = best_log_w[..., None] + torch.log(torch.tensor(float(candidates)))
         return self.mlp(torch.cat([f, best, self.scale * cycle[..., None]], dim=-1))[..., 0]
 
+    def from_features_product(self, first: torch.Tensor, best_log_w: torch.Tensor, candidates: int,
+                              cycle: torch.Tensor) -> torch.Tensor:
+        """`forward` with the first layer's product of the features and its bias already taken, `first`
+        (B, N, hidden): the two scalar inputs' columns are added to it, then the rest of the MLP."""
+        c = self.mlp[0].weight.shape[1] - 2  # the features' width; the score's and the cycle's columns follow
+        w_best, w_cycle = self.mlp[0].weight[:, c], self.mlp[0].weight[:, c + 1]
+        best = best_log_w[..., None] + math.log(candidates)
+        first = first + best * w_best + (self.scale * cycle[..., None]) * w_cycle
+        return self.mlp[1:](first)[..., 0]
+
 
 class GenRegNet(nn.Module):
     """The generator. `forward(a, b)` -> GenRegOutput. Inputs must hold exactly cfg.num_points points."""
@@ -211,22 +218,62 @@ class GenRegNet(nn.Module):
         a0, b0 = a - c_a, b - c_b
         centred = torch.cat([a0, b0], dim=0)
         graph = knn_indices(centred, self.config.k_neighbors) if graph is None else graph
-        f_a, f_b = self.encoder(centred, graph).chunk(2, dim=0)
+        encoder = self.encoder.gcnn if self.folds_backbone() else self.encoder
+        f_a, f_b = encoder(centred, graph).chunk(2, dim=0)
         return Encoded(a0, b0, c_a, c_b, f_a, f_b, *graph.chunk(2, dim=0))
+
+    def folds_backbone(self) -> bool:
+        """Whether this pass folds the backbone "dgcnn"'s linear layer F = M h + m into the interaction (no
+        gradient recorded): `encode` then stops at the GCNN features h, and `interact` takes its first
+        products from them (`first_products`)."""
+        return self.config.backbone == "dgcnn" and not torch.is_grad_enabled()
+
+    def first_products(self) -> tuple[torch.Tensor, torch.Tensor]:
+        """Inference: the interaction's first linear maps of the features F, stacked into one (W, b): the
+        pointer's query and key projections and, with the overlap head, its first layer's feature columns.
+        F is only ever read by these maps, so when F = M h + m (`folds_backbone`) they are composed with it,
+        W (M h + m) + b = (W M) h + (W m + b), and one product of the narrower h gives all three: the
+        same values up to float32 rounding, at a third of the products at backbone "dgcnn"'s widths."""
+        maps = [self.pointer.query, self.pointer.key] + ([] if self.overlap is None else [self.overlap.mlp[0]])
+        c = self.config.feature_dim
+        weight = torch.cat([m.weight[:, :c] for m in maps])
+        bias = torch.cat([m.bias for m in maps])
+        if not self.folds_backbone():
+            return weight, bias
+        mixer = self.encoder.mixer1
+        return weight @ mixer.weight, torch.addmv(bias, weight, mixer.bias)
 
     def interact(self, enc: Encoded) -> Match:
         """Stage 2: log match weights both ways and, with the overlap head, per-point overlap logits."""
-        log_w_a, log_w_b = self.pointer.both(enc.f_a, enc.f_b)
+        if not torch.is_grad_enabled():
+            return self.interact_inference(enc)
+        log_w_a, log_w_b = self.pointer(enc.f_a, enc.f_b), self.pointer(enc.f_b, enc.f_a)
         (top_a, best_a), (top_b, best_b) = log_w_a.max(dim=-1), log_w_b.max(dim=-1)  # one pass: value and index
         if self.overlap is None:
             return Match(log_w_a, log_w_b, best_a, best_b)
         cycle_a, cycle_b = cycle_distance(best_a, best_b, enc.a0), cycle_distance(best_b, best_a, enc.b0)
-        if torch.is_grad_enabled() or log_w_a.shape != log_w_b.shape:
-            return Match(log_w_a, log_w_b, best_a, best_b, self.overlap(enc.f_a, top_a, log_w_a.shape[-1], cycle_a),
-                         self.overlap(enc.f_b, top_b, log_w_b.shape[-1], cycle_b))
-        both = self.overlap(torch.cat([enc.f_a, enc.f_b]), torch.cat([top_a, top_b]), log_w_a.shape[-1],
-                            torch.cat([cycle_a, cycle_b]))  # one pass over both clouds' rows
-        return Match(log_w_a, log_w_b, best_a, best_b, *both.chunk(2))
+        return Match(log_w_a, log_w_b, best_a, best_b, self.overlap(enc.f_a, top_a, log_w_a.shape[-1], cycle_a),
+                     self.overlap(enc.f_b, top_b, log_w_b.shape[-1], cycle_b))
+
+    def interact_inference(self, enc: Encoded) -> Match:
+        """`interact` without gradient, the same values: the first products of both clouds' rows at once
+        (`first_products`), then the pointer's log weights and the overlap head's remaining layers."""
+        weight, bias = self.first_products()
+        d = self.config.attention_dim
+        if enc.f_a.shape == enc.f_b.shape:  # one product over both clouds' rows
+            first = nn.functional.linear(torch.cat([enc.f_a, enc.f_b]), weight, bias).chunk(2)
+        else:
+            first = (nn.functional.linear(enc.f_a, weight, bias), nn.functional.linear(enc.f_b, weight, bias))
+        (q_a, k_a), (q_b, k_b) = ((self.pointer.unit(x[..., :d]), self.pointer.unit(x[..., d: 2 * d])) for x in first)
+        log_w_a, log_w_b = self.pointer.log_weights(q_a, k_b), self.pointer.log_weights(q_b, k_a)
+        (top_a, best_a), (top_b, best_b) = log_w_a.max(dim=-1), log_w_b.max(dim=-1)  # one pass: value and index
+        if self.overlap is None:
+            return Match(log_w_a, log_w_b, best_a, best_b)
+        cycle_a, cycle_b = cycle_distance(best_a, best_b, enc.a0), cycle_distance(best_b, best_a, enc.b0)
+        overlap_a, overlap_b = (self.overlap.from_features_product(x[..., 2 * d:], top, w.shape[-1], cycle)
+                                for x, top, w, cycle in ((first[0], top_a, log_w_a, cycle_a),
+                                                         (first[1], top_b, log_w_b, cycle_b)))
+        return Match(log_w_a, log_w_b, best_a, best_b, overlap_a, overlap_b)
 
     def generate(self, enc: Encoded, match: Match) -> GenRegOutput:
         """Stage 3: A_g (A in B's frame) and B_g (B in A's frame) from the matches."""
