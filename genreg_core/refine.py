@@ -14,7 +14,7 @@ import open3d as o3d
 import small_gicp
 
 from genreg_core.config import RefineConfig
-from genreg_core.score import NORMAL_NEIGHBOURS
+from genreg_core.score import NORMAL_NEIGHBOURS, TargetIndex
 
 
 def o3d_cloud(points: np.ndarray) -> o3d.geometry.PointCloud:
@@ -38,7 +38,7 @@ def estimate_normals(cloud: o3d.geometry.PointCloud, radius: float | None = None
 
 def icp(
     source: np.ndarray | o3d.geometry.PointCloud,
-    target: np.ndarray | o3d.geometry.PointCloud,
+    target: np.ndarray | o3d.geometry.PointCloud | TargetIndex,
     init: np.ndarray | None = None,
     *,
     method: str = "point_to_plane",
@@ -51,11 +51,14 @@ def icp(
 
     `method`: Open3D's "point_to_point" or "point_to_plane" (target normals by `estimate_normals`, unless
     the target cloud already has them), or small_gicp's "gicp" (arrays only; covariances from its default
-    neighbourhoods). Both clouds are voxel-downsampled first when `voxel_size` > 0.
+    neighbourhoods). Both clouds are voxel-downsampled first when `voxel_size` > 0. A `TargetIndex` target
+    is its points; GICP also searches its k-d tree instead of building another.
     """
+    tree = target.tree if isinstance(target, TargetIndex) and voxel_size <= 0 else None
+    target = target.points if isinstance(target, TargetIndex) else target
     if method == "gicp":
         return gicp(np.asarray(source, dtype=np.float64), np.asarray(target, dtype=np.float64), init,
-                    max_distance=max_distance, max_iterations=max_iterations, voxel_size=voxel_size)
+                    max_distance=max_distance, max_iterations=max_iterations, voxel_size=voxel_size, target_tree=tree)
     reg = o3d.pipelines.registration
     src = source if isinstance(source, o3d.geometry.PointCloud) else o3d_cloud(source)
     tgt = target if isinstance(target, o3d.geometry.PointCloud) else o3d_cloud(target)
@@ -76,9 +79,12 @@ def icp(
 
 
 def gicp(source: np.ndarray, target: np.ndarray, init: np.ndarray | None = None, *, max_distance: float,
-         max_iterations: int, voxel_size: float = 0.0, threads: int = 1, neighbours: int = 10) -> np.ndarray:
+         max_iterations: int, voxel_size: float = 0.0, threads: int = 1, neighbours: int = 10,
+         target_tree: small_gicp.KdTree | None = None) -> np.ndarray:
     """small_gicp's GICP from `init`: the 4x4 target_from_source. Both clouds are voxel-downsampled by
-    small_gicp when `voxel_size` > 0; point covariances from `neighbours` nearest neighbours."""
+    small_gicp when `voxel_size` > 0; point covariances from `neighbours` nearest neighbours. `target_tree`:
+    a small_gicp k-d tree of exactly `target`'s rows (`TargetIndex.tree`) to search instead of building one
+    (without downsampling)."""
     init = np.eye(4) if init is None else np.asarray(init, dtype=np.float64)
     if voxel_size > 0:
         result = small_gicp.align(target, source, init, registration_type="GICP", downsampling_resolution=voxel_size,
@@ -86,7 +92,8 @@ def gicp(source: np.ndarray, target: np.ndarray, init: np.ndarray | None = None,
                                   max_iterations=max_iterations)
     else:
         clouds = [small_gicp.PointCloud(np.ascontiguousarray(c, dtype=np.float64)) for c in (target, source)]
-        trees = [small_gicp.KdTree(c, num_threads=threads) for c in clouds]
+        trees = [target_tree or small_gicp.KdTree(clouds[0], num_threads=threads),
+                 small_gicp.KdTree(clouds[1], num_threads=threads)]
         for c, tree in zip(clouds, trees, strict=True):
             small_gicp.estimate_covariances(c, tree, num_neighbors=neighbours, num_threads=threads)
         result = small_gicp.align(clouds[0], clouds[1], trees[0], init, registration_type="GICP",

@@ -190,7 +190,8 @@ class Registrar:
         T_n = est.transform[k].double().cpu().numpy()
         inlier_ratio = float(est.inliers[k].float().mean())
         refining = cfg.refine.method != "none"
-        target = p.plane_target if cfg.refine.method == "point_to_plane" else p.dense_tgt  # ICP's target
+        # ICP's target: with its normals for point-to-plane; for GICP the scores' index, whose k-d tree it searches
+        target = {"point_to_plane": p.plane_target, "gicp": p.target_index}.get(cfg.refine.method, p.dense_tgt)
         if refining:
             T_n = refine(p.dense_src, target, T_n, cfg.refine)  # 6. refine GenReg's estimate
         distance = fitness_distance(p.target_index)
