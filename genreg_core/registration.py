@@ -191,7 +191,8 @@ class Registrar:
         inlier_ratio = float(est.inliers[k].float().mean())
         refining = cfg.refine.method != "none"
         # ICP's target: with its normals for point-to-plane; for GICP the scores' index, whose k-d tree it searches
-        target = {"point_to_plane": p.plane_target, "gicp": p.target_index}.get(cfg.refine.method, p.dense_tgt)
+        method = cfg.refine.method
+        target = p.plane_target if method == "point_to_plane" else p.target_index if method == "gicp" else p.dense_tgt
         if refining:
             T_n = refine(p.dense_src, target, T_n, cfg.refine)  # 6. refine GenReg's estimate
         distance = fitness_distance(p.target_index)
