@@ -265,13 +265,11 @@ class GenRegNet(nn.Module):
 
     def interact_inference(self, enc: Encoded) -> Match:
         """`interact` without gradient, the same values: the first products of both clouds' rows at once
-        (`first_products`), then the pointer's log weights and the overlap head's remaining layers."""
+        (`first_products`; `encode` gives both clouds N points), then the pointer's log weights and the
+        overlap head's remaining layers."""
         weight, bias = self.first_products()
         d = self.config.attention_dim
-        if enc.f_a.shape == enc.f_b.shape:  # one product over both clouds' rows
-            first = nn.functional.linear(torch.cat([enc.f_a, enc.f_b]), weight, bias).chunk(2)
-        else:
-            first = (nn.functional.linear(enc.f_a, weight, bias), nn.functional.linear(enc.f_b, weight, bias))
+        first = nn.functional.linear(torch.cat([enc.f_a, enc.f_b]), weight, bias).chunk(2)  # both clouds' rows
         (q_a, k_a), (q_b, k_b) = ((self.pointer.unit(x[..., :d]), self.pointer.unit(x[..., d: 2 * d])) for x in first)
         log_w_a, log_w_b = self.pointer.log_weights(q_a, k_b), self.pointer.log_weights(q_b, k_a)
         (top_a, best_a), (top_b, best_b) = log_w_a.max(dim=-1), log_w_b.max(dim=-1)  # one pass: value and index
