@@ -21,7 +21,8 @@ a 2 MB residual table). Here each problem is one pass of scalar code, with the f
     refits.
   - `weighted_sets`: the inverse-CDF mapping of uniform draws to weighted minimal sets.
 - Encoder (`model.gcnn`, `model.invariant`): `knn_self` (the kNN graph), `invariant_geometry` (the
-  rotation-invariant point-pair features), `neighbour_max` (the edge convolution's max over neighbours).
+  rotation-invariant point-pair features), `neighbour_max` (the edge convolution's max over neighbours);
+  interact (`model.genreg`): `row_max` (each point's best match and its log weight).
 - Scores and output (`score`, `prepare`): `plane_normals` (target normals), `transform_rows` (the aligned
   full-resolution cloud); `copy_rows` (x, y, z out of a PointCloud2's records, `genreg_ros.pointcloud2`).
 
@@ -276,6 +277,34 @@ def neighbour_max(values: np.ndarray, neighbours: np.ndarray) -> np.ndarray:
                 for c in range(C):
                     row[c] = max(row[c], other[c])
     return out
+
+
+@njit(**{**_OPTIONS, "fastmath": True}, inline="always")
+def _largest(row: np.ndarray) -> float:
+    """The largest value of a finite row, in independent lanes (vectorised)."""
+    m = row[0]
+    for j in range(1, row.shape[0]):
+        m = max(m, row[j])
+    return m
+
+
+@njit(**_OPTIONS)
+def row_max(x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Largest value (B, N) and the first index of it (B, N) int64 of each row of finite x (B, N, M): torch's
+    `max(dim=-1)`. The value in vectorised lanes, then the first position that holds it."""
+    B, N = x.shape[0], x.shape[1]
+    top = np.empty((B, N), dtype=x.dtype)
+    best = np.zeros((B, N), dtype=np.int64)
+    for b in range(B):
+        for i in range(N):
+            row = x[b, i]
+            m = _largest(row)
+            top[b, i] = m
+            for j in range(row.shape[0]):
+                if row[j] == m:
+                    best[b, i] = j
+                    break
+    return top, best
 
 
 @njit(**_OPTIONS, inline="always")
@@ -534,6 +563,7 @@ def compile_all() -> None:
     knn_self(cloud.astype(f64), 8)
     invariant_geometry(cloud, graph)
     neighbour_max(rng.random((1, 32, 4)).astype(f32), graph)
+    row_max(rng.random((1, 4, 8)).astype(f32))
     for dtype in (f32, f64):
         sets = rng.random((4, 3, 3)).astype(dtype)
         fit_rigid(sets, sets, np.ones((4, 3), dtype=dtype))

@@ -15,7 +15,7 @@ from genreg_core import kernels
 from genreg_core.config import ModelConfig, PDSACConfig
 from genreg_core.geometry import apply_transform, invert_transform, kabsch, random_transform
 from genreg_core.model.gcnn import knn_indices, neighbour_max
-from genreg_core.model.genreg import GenRegNet, neighbour_mix
+from genreg_core.model.genreg import GenRegNet, neighbour_mix, row_max
 from genreg_core.model.invariant import invariant_geometry, smallest_eigenpair3
 from genreg_core.model.layers import gather_neighbours, per_cloud, point_mlp
 from genreg_core.pdsac import (
@@ -121,6 +121,22 @@ def test_match_best_is_the_argmax_of_the_match_weights():
     with torch.no_grad():
         match = net.interact(net.encode(torch.rand(1, 64, 3), torch.rand(1, 64, 3)))
     assert torch.equal(match.best_a, match.log_w_a.argmax(-1)) and torch.equal(match.best_b, match.log_w_b.argmax(-1))
+
+
+def test_compiled_row_max_is_torchs_indexed_max_ties_included():
+    """`genreg.row_max` (compiled where usable): torch's value and first index of each row's maximum, on
+    log weights with exact ties planted (the lower index wins, as torch's max)."""
+    torch.manual_seed(0)
+    x = torch.log_softmax(5 * torch.randn(3, 200, 130), dim=-1)
+    top = x.amax(dim=-1, keepdim=True)
+    x[:, ::3, 77] = top[:, ::3, 0]  # a tie after the first maximum
+    x[:, 1::3, 5] = top[:, 1::3, 0]  # a tie before it
+    x[:, 2::3, :] = -1.5  # a row of equal values
+    with torch.no_grad():
+        value, index = row_max(x)
+    expected = x.max(dim=-1)
+    assert kernels.usable(x) and torch.equal(value, expected.values) and torch.equal(index, expected.indices)
+    assert (index[:, 2::3] == 0).all()
 
 
 def _set_probabilities(w: np.ndarray, k: int) -> dict[tuple[int, ...], float]:

@@ -29,6 +29,7 @@ from dataclasses import dataclass
 import torch
 from torch import nn
 
+from genreg_core import kernels
 from genreg_core.config import ModelConfig
 from genreg_core.model.gcnn import knn_indices
 from genreg_core.model.invariant import InvariantEncoder
@@ -160,6 +161,14 @@ def neighbour_mix(log_w: torch.Tensor, best: torch.Tensor, y: torch.Tensor, k: i
     return (weights[..., None] * points).sum(dim=2)
 
 
+def row_max(x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """`x.max(dim=-1)` (value, first index of it) of finite rows; where `kernels.usable`, compiled (torch's
+    indexed max is not vectorised: 0.25 ms for 512 x 512)."""
+    if not kernels.usable(x):
+        return tuple(x.max(dim=-1))
+    return tuple(torch.from_numpy(y) for y in kernels.row_max(x.contiguous().numpy()))
+
+
 def cycle_distance(best_x: torch.Tensor, best_y: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
     """|x_i - x_i'| where i' is the pick of the pick of x_i (x -> y -> x): zero for consistent matches.
     Picks x -> y (B, N), y -> x (B, M), points (B, N, 3) -> (B, N)."""
@@ -272,7 +281,7 @@ class GenRegNet(nn.Module):
         first = nn.functional.linear(torch.cat([enc.f_a, enc.f_b]), weight, bias).chunk(2)  # both clouds' rows
         (q_a, k_a), (q_b, k_b) = ((self.pointer.unit(x[..., :d]), self.pointer.unit(x[..., d: 2 * d])) for x in first)
         log_w_a, log_w_b = self.pointer.log_weights(q_a, k_b), self.pointer.log_weights(q_b, k_a)
-        (top_a, best_a), (top_b, best_b) = log_w_a.max(dim=-1), log_w_b.max(dim=-1)  # one pass: value and index
+        (top_a, best_a), (top_b, best_b) = row_max(log_w_a), row_max(log_w_b)
         if self.overlap is None:
             return Match(log_w_a, log_w_b, best_a, best_b)
         cycle_a, cycle_b = cycle_distance(best_a, best_b, enc.a0), cycle_distance(best_b, best_a, enc.b0)
