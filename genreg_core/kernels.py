@@ -22,7 +22,8 @@ a 2 MB residual table). Here each problem is one pass of scalar code, with the f
   - `weighted_sets`: the inverse-CDF mapping of uniform draws to weighted minimal sets.
 - Encoder (`model.gcnn`, `model.invariant`): `knn_self` (the kNN graph), `invariant_geometry` (the
   rotation-invariant point-pair features), `neighbour_max` (the edge convolution's max over neighbours);
-  interact (`model.genreg`): `row_max` (each point's best match and its log weight).
+  interact and generate (`model.genreg`): `row_max` (each point's best match and its log weight),
+  `neighbour_mix` (the generated point from the best match's neighbours).
 - Scores and output (`score`, `prepare`): `plane_normals` (target normals), `transform_rows` (the aligned
   full-resolution cloud); `copy_rows` (x, y, z out of a PointCloud2's records, `genreg_ros.pointcloud2`).
 
@@ -307,6 +308,33 @@ def row_max(x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return top, best
 
 
+@njit(**_OPTIONS)
+def neighbour_mix(log_w: np.ndarray, best: np.ndarray, y: np.ndarray, knn: np.ndarray, k: int) -> np.ndarray:
+    """For each row i of log_w (B, N, M): the mean of y's (B, M, 3) rows knn[best[i], :k] (B, M, >= k),
+    weighted by the softmax of their log weights in row i -> (B, N, 3), in y's dtype (`genreg.neighbour_mix`)."""
+    B, N = best.shape[0], best.shape[1]
+    out = np.empty((B, N, 3), dtype=y.dtype)
+    w = np.empty(k, dtype=log_w.dtype)
+    for b in range(B):
+        for i in range(N):
+            c = knn[b, best[b, i]]
+            m = log_w[b, i, c[0]]
+            for j in range(1, k):
+                m = max(m, log_w[b, i, c[j]])
+            total = 0.0
+            for j in range(k):
+                w[j] = np.exp(log_w[b, i, c[j]] - m)
+                total += w[j]
+            o0, o1, o2 = 0.0, 0.0, 0.0
+            for j in range(k):
+                p = y[b, c[j]]
+                o0 += w[j] * p[0]
+                o1 += w[j] * p[1]
+                o2 += w[j] * p[2]
+            out[b, i, 0], out[b, i, 1], out[b, i, 2] = o0 / total, o1 / total, o2 / total
+    return out
+
+
 @njit(**_OPTIONS, inline="always")
 def _longest_cross(m00: float, m01: float, m02: float, m11: float, m12: float, m22: float
                    ) -> tuple[float, float, float, float]:
@@ -564,6 +592,7 @@ def compile_all() -> None:
     invariant_geometry(cloud, graph)
     neighbour_max(rng.random((1, 32, 4)).astype(f32), graph)
     row_max(rng.random((1, 4, 8)).astype(f32))
+    neighbour_mix(rng.random((1, 32, 32)).astype(f32), graph[:, :, 0], cloud, graph, 4)
     for dtype in (f32, f64):
         sets = rng.random((4, 3, 3)).astype(dtype)
         fit_rigid(sets, sets, np.ones((4, 3), dtype=dtype))

@@ -106,13 +106,21 @@ def test_inference_forward_equals_the_differentiable_forward(cfg: ModelConfig):
             assert torch.allclose(x, y, atol=1e-5)
 
 
-def test_neighbour_mix_from_the_encoder_graph_equals_a_fresh_query():
+def test_neighbour_mix_from_the_encoder_graph_equals_a_fresh_query_and_the_torch_form():
+    """With the encoder's graph, inference mixes in one compiled pass (`kernels.neighbour_mix`): the torch
+    form's values (a fresh kNN query, gathers and a softmax) to float32 rounding, and an explicit
+    weighted mean of the best match's 6 nearest neighbours."""
     torch.manual_seed(0)
     y = torch.rand(2, 80, 3)
-    log_w = torch.log_softmax(torch.randn(2, 70, 80), dim=-1)
+    log_w = torch.log_softmax(3 * torch.randn(2, 70, 80), dim=-1)
     best = log_w.argmax(-1)
     graph = knn_indices(y, 20)
-    assert torch.equal(neighbour_mix(log_w, best, y, 6, graph), neighbour_mix(log_w, best, y, 6))
+    fast = neighbour_mix(log_w, best, y, 6, graph)
+    assert kernels.usable(log_w, y)
+    assert torch.allclose(fast, neighbour_mix(log_w, best, y, 6), atol=1e-6)
+    near = torch.cdist(y[1, best[1, 9]][None], y[1]).argsort()[0, :6]  # the pick's 6 nearest (itself first)
+    w = torch.softmax(log_w[1, 9, near], dim=0)
+    assert torch.allclose(fast[1, 9], (w[:, None] * y[1, near]).sum(0), atol=1e-6)
 
 
 def test_match_best_is_the_argmax_of_the_match_weights():

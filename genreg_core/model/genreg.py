@@ -153,7 +153,11 @@ def neighbour_mix(log_w: torch.Tensor, best: torch.Tensor, y: torch.Tensor, k: i
     """For each row of log_w (B, N, M), `best` (B, N) its argmax: the mean of the best match's k nearest
     neighbours in y (B, M, 3), the best included, weighted by their renormalised match weights. A convex
     combination of y's points chosen by invariant quantities, so it moves with y under any rigid motion.
-    knn: y's kNN graph (B, M, >= k), nearest first, to take the k nearest from, or None to query them."""
+    knn: y's kNN graph (B, M, >= k), nearest first, to take the k nearest from, or None to query them. With
+    a graph, where `kernels.usable`: compiled (`kernels.neighbour_mix`), equal to float32 rounding."""
+    if knn is not None and kernels.usable(log_w, y):  # the same formula in one compiled pass
+        arrays = (x.contiguous().numpy() for x in (log_w, best, y, knn))
+        return torch.from_numpy(kernels.neighbour_mix(*arrays, k))
     knn = knn_indices(y, k) if knn is None else knn[..., :k]  # (B, M, k), nearest first (the point itself)
     candidates = torch.gather(knn, 1, best[..., None].expand(-1, -1, k))  # (B, N, k)
     weights = torch.softmax(torch.gather(log_w, 2, candidates), dim=-1)
