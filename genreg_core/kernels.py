@@ -22,7 +22,7 @@ a 2 MB residual table). Here each problem is one pass of scalar code, with the f
   - `weighted_sets`: the inverse-CDF mapping of uniform draws to weighted minimal sets.
 - Encoder (`model.gcnn`, `model.invariant`): `knn_self` (the kNN graph), `invariant_geometry` (the
   rotation-invariant point-pair features), `neighbour_max` (the edge convolution's max over neighbours);
-  interact and generate (`model.genreg`): `row_max` (each point's best match and its log weight),
+  interact and generate (`model.genreg`): `first_index` (each point's best match, given its log weight),
   `neighbour_mix` (the generated point from the best match's neighbours).
 - Scores and output (`score`, `prepare`): `plane_normals` (target normals), `transform_rows` (the aligned
   full-resolution cloud); `copy_rows` (x, y, z out of a PointCloud2's records, `genreg_ros.pointcloud2`).
@@ -280,32 +280,21 @@ def neighbour_max(values: np.ndarray, neighbours: np.ndarray) -> np.ndarray:
     return out
 
 
-@njit(**{**_OPTIONS, "fastmath": True}, inline="always")
-def _largest(row: np.ndarray) -> float:
-    """The largest value of a finite row, in independent lanes (vectorised)."""
-    m = row[0]
-    for j in range(1, row.shape[0]):
-        m = max(m, row[j])
-    return m
-
-
-@njit(**_OPTIONS)
-def row_max(x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Largest value (B, N) and the first index of it (B, N) int64 of each row of finite x (B, N, M): torch's
-    `max(dim=-1)`. The value in vectorised lanes, then the first position that holds it."""
-    B, N = x.shape[0], x.shape[1]
-    top = np.empty((B, N), dtype=x.dtype)
-    best = np.zeros((B, N), dtype=np.int64)
+@njit(**{**_OPTIONS, "fastmath": True})
+def first_index(x: np.ndarray, values: np.ndarray) -> np.ndarray:
+    """The first index (B, N) int64 at which each row of x (B, N, M) holds its value in `values` (B, N), which
+    every row holds (its max: with torch's `amax`, torch's `max(dim=-1)` index). Branch-free and vectorised:
+    the largest of M - j over the matching positions j."""
+    B, N, M = x.shape[0], x.shape[1], x.shape[2]
+    out = np.empty((B, N), dtype=np.int64)
     for b in range(B):
         for i in range(N):
-            row = x[b, i]
-            m = _largest(row)
-            top[b, i] = m
-            for j in range(row.shape[0]):
-                if row[j] == m:
-                    best[b, i] = j
-                    break
-    return top, best
+            row, value = x[b, i], values[b, i]
+            code = np.int32(0)
+            for j in range(M):
+                code = max(code, np.int32(M - j) if row[j] == value else np.int32(0))
+            out[b, i] = M - code
+    return out
 
 
 @njit(**_OPTIONS)
@@ -591,7 +580,8 @@ def compile_all() -> None:
     knn_self(cloud.astype(f64), 8)
     invariant_geometry(cloud, graph)
     neighbour_max(rng.random((1, 32, 4)).astype(f32), graph)
-    row_max(rng.random((1, 4, 8)).astype(f32))
+    rows = rng.random((1, 4, 8)).astype(f32)
+    first_index(rows, rows.max(axis=-1))
     neighbour_mix(rng.random((1, 32, 32)).astype(f32), graph[:, :, 0], cloud, graph, 4)
     for dtype in (f32, f64):
         sets = rng.random((4, 3, 3)).astype(dtype)
