@@ -54,8 +54,7 @@ def icp(
     neighbourhoods). Both clouds are voxel-downsampled first when `voxel_size` > 0. A `TargetIndex` target
     is its points; GICP also searches its k-d tree instead of building another.
     """
-    tree = target.tree if isinstance(target, TargetIndex) and voxel_size <= 0 else None
-    target = target.points if isinstance(target, TargetIndex) else target
+    tree, target = (target.tree, target.points) if isinstance(target, TargetIndex) else (None, target)
     if method == "gicp":
         return gicp(np.asarray(source, dtype=np.float64), np.asarray(target, dtype=np.float64), init,
                     max_distance=max_distance, max_iterations=max_iterations, voxel_size=voxel_size, target_tree=tree)

@@ -267,33 +267,31 @@ class GenRegNet(nn.Module):
         return weight, bias
 
     def interact(self, enc: Encoded) -> Match:
-        """Stage 2: log match weights both ways and, with the overlap head, per-point overlap logits."""
-        if not torch.is_grad_enabled():
-            return self.interact_inference(enc)
-        log_w_a, log_w_b = self.pointer(enc.f_a, enc.f_b), self.pointer(enc.f_b, enc.f_a)
-        (top_a, best_a), (top_b, best_b) = log_w_a.max(dim=-1), log_w_b.max(dim=-1)  # one pass: value and index
+        """Stage 2: log match weights both ways and, with the overlap head, per-point overlap logits. Without
+        gradient the same values from the first products of both clouds' rows at once (`first_products`;
+        `encode` gives both clouds N points), then the pointer's log weights and the overlap head's
+        remaining layers."""
+        inference = not torch.is_grad_enabled()
+        if inference:
+            weight, bias = self.first_products()
+            d = self.config.attention_dim
+            first = nn.functional.linear(torch.cat([enc.f_a, enc.f_b]), weight, bias).chunk(2)  # both clouds' rows
+            (q_a, k_a), (q_b, k_b) = ((self.pointer.unit(x[..., :d]), self.pointer.unit(x[..., d: 2 * d]))
+                                      for x in first)
+            log_w_a, log_w_b = self.pointer.log_weights(q_a, k_b), self.pointer.log_weights(q_b, k_a)
+        else:
+            log_w_a, log_w_b = self.pointer(enc.f_a, enc.f_b), self.pointer(enc.f_b, enc.f_a)
+        (top_a, best_a), (top_b, best_b) = row_max(log_w_a), row_max(log_w_b)  # one pass: value and index
         if self.overlap is None:
             return Match(log_w_a, log_w_b, best_a, best_b)
         cycle_a, cycle_b = cycle_distance(best_a, best_b, enc.a0), cycle_distance(best_b, best_a, enc.b0)
-        return Match(log_w_a, log_w_b, best_a, best_b, self.overlap(enc.f_a, top_a, log_w_a.shape[-1], cycle_a),
-                     self.overlap(enc.f_b, top_b, log_w_b.shape[-1], cycle_b))
-
-    def interact_inference(self, enc: Encoded) -> Match:
-        """`interact` without gradient, the same values: the first products of both clouds' rows at once
-        (`first_products`; `encode` gives both clouds N points), then the pointer's log weights and the
-        overlap head's remaining layers."""
-        weight, bias = self.first_products()
-        d = self.config.attention_dim
-        first = nn.functional.linear(torch.cat([enc.f_a, enc.f_b]), weight, bias).chunk(2)  # both clouds' rows
-        (q_a, k_a), (q_b, k_b) = ((self.pointer.unit(x[..., :d]), self.pointer.unit(x[..., d: 2 * d])) for x in first)
-        log_w_a, log_w_b = self.pointer.log_weights(q_a, k_b), self.pointer.log_weights(q_b, k_a)
-        (top_a, best_a), (top_b, best_b) = row_max(log_w_a), row_max(log_w_b)
-        if self.overlap is None:
-            return Match(log_w_a, log_w_b, best_a, best_b)
-        cycle_a, cycle_b = cycle_distance(best_a, best_b, enc.a0), cycle_distance(best_b, best_a, enc.b0)
-        overlap_a, overlap_b = (self.overlap.from_features_product(x[..., 2 * d:], top, w.shape[-1], cycle)
-                                for x, top, w, cycle in ((first[0], top_a, log_w_a, cycle_a),
-                                                         (first[1], top_b, log_w_b, cycle_b)))
+        if inference:
+            overlap_a, overlap_b = (self.overlap.from_features_product(x[..., 2 * d:], top, w.shape[-1], cycle)
+                                    for x, top, w, cycle in ((first[0], top_a, log_w_a, cycle_a),
+                                                             (first[1], top_b, log_w_b, cycle_b)))
+        else:
+            overlap_a = self.overlap(enc.f_a, top_a, log_w_a.shape[-1], cycle_a)
+            overlap_b = self.overlap(enc.f_b, top_b, log_w_b.shape[-1], cycle_b)
         return Match(log_w_a, log_w_b, best_a, best_b, overlap_a, overlap_b)
 
     def generate(self, enc: Encoded, match: Match) -> GenRegOutput:
