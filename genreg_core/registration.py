@@ -1,6 +1,6 @@
 """The registration pipeline: the algorithm in paper order, one stage per module.
 
-    reg = Registrar.from_checkpoint("modelnet40")
+    reg = Registrar.from_checkpoint()              # the object model (config.OBJECT_MODEL); "7scenes": scenes
     result = reg.register(source, target)          # (N, 3) and (M, 3) arrays, any units
     target_points ~ apply_transform(result.transformation, source_points)
 
@@ -30,7 +30,7 @@ import numpy as np
 import torch
 
 from genreg_core.checkpoint import load_checkpoint
-from genreg_core.config import PDSACConfig, RegistrationConfig
+from genreg_core.config import OBJECT_MODEL, PDSACConfig, RegistrationConfig
 from genreg_core.fallback import fallback
 from genreg_core.geometry import apply_transform
 from genreg_core.pdsac import pdsac_bidirectional, seeded_generator, union_inlier_share
@@ -115,7 +115,7 @@ class Registrar:
 
     @classmethod
     def from_checkpoint(
-        cls, name_or_path: str | os.PathLike = "modelnet40", config: RegistrationConfig | None = None,
+        cls, name_or_path: str | os.PathLike = OBJECT_MODEL, config: RegistrationConfig | None = None,
         num_points: int | None = None,
     ) -> Registrar:
         """Load a shipped model by name or a checkpoint file; CheckpointError if unusable."""

@@ -30,6 +30,8 @@ from typing import Any
 import numpy as np
 
 from genreg_core.config import (
+    OBJECT_MODEL,
+    SCENE_MODEL,
     SCENE_PDSAC,
     FallbackConfig,
     PDSACConfig,
@@ -53,8 +55,9 @@ DURABILITIES = ("volatile", "transient_local")
 class ModelParams:
     """Which network the node loads (its threads: `registration.estimate_threads`)."""
 
-    checkpoint: str = setting("modelnet40", "Shipped model name (modelnet40, modelnet40_dgcnn, 7scenes) or a "
-                              ".pt checkpoint path.", start_up=True)
+    checkpoint: str = setting(OBJECT_MODEL, "Shipped model name (modelnet40_dgcnn: objects, 7scenes: scenes, "
+                              "modelnet40_partial: partially overlapping objects, modelnet40) or a .pt checkpoint "
+                              "path.", start_up=True)
     num_points: int = setting(0, "Expected model N (points per cloud fed to the network); 0 accepts the "
                               "checkpoint's N.", low=0, high=65536, start_up=True)
 
@@ -216,11 +219,11 @@ CONFIG_DIR = Path(__file__).resolve().parent.parent / "config"
 # Scenes: the scene model, small_gicp's GICP (best of the refinements on real pairs, MODEL_CARD.md), the
 # scene PDSAC settings (genreg_core.config.SCENE_PDSAC); two workers: a 30 Hz depth camera's full-resolution
 # pairs need both cores (issue 15, scripts/bench_node.py soak)
-SCENE_OVERRIDES = {"model.checkpoint": "7scenes", "refine.method": "gicp", "pdsac.sample_size": SCENE_PDSAC.sample_size,
+SCENE_OVERRIDES = {"model.checkpoint": SCENE_MODEL, "refine.method": "gicp", "pdsac.sample_size": SCENE_PDSAC.sample_size,
                    "workers": 2}
 PROFILES: dict[str, tuple[str, dict[str, Any]]] = {
-    "genreg.yaml": ("depth-camera and indoor scenes (the scene model 7scenes)", SCENE_OVERRIDES),
-    "genreg_objects.yaml": ("object models (the object model modelnet40, clouds of a single object)", {}),
+    "genreg.yaml": (f"depth-camera and indoor scenes (the scene model {SCENE_MODEL})", SCENE_OVERRIDES),
+    "genreg_objects.yaml": (f"object models (the object model {OBJECT_MODEL}, clouds of a single object)", {}),
 }
 YAML_HEADER = """\
 # Parameters of genreg_ros register_node for {purpose}. GENERATED from genreg_ros/config.py

@@ -23,6 +23,8 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
+from genreg_core.config import OBJECT_MODEL  # noqa: E402  (no torch: threads are set before it loads)
+
 DATASETS = ("modelnet-seen-partial", "modelnet-unseen-partial")
 
 
@@ -31,7 +33,7 @@ def main() -> int:
     p.add_argument("--pairs", type=int, default=100)
     p.add_argument("--threads", type=int, default=2)
     p.add_argument("--batch", type=int, default=16)
-    p.add_argument("--checkpoint", default="modelnet40")
+    p.add_argument("--checkpoint", default=OBJECT_MODEL)
     args = p.parse_args()
     from genreg_core.bench.cli import configure_threads
 

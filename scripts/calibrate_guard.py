@@ -5,7 +5,7 @@ training pairs.
     python scripts/calibrate_guard.py --pairs 150 --threads 2
 
 ModelNet40 seen categories, *train* split (never the benchmark's test pairs), seed 1, two kinds of pairs:
-the paper's partial variant (target without its 20 % largest-x points, N=512) with `modelnet40`, and
+the paper's partial variant (target without its 20 % largest-x points, N=512) with the object model, and
 RPM-Net-style partial-to-partial crops with `modelnet40_partial`. Per pair: the API without the guard
 (RE, confidence, fitness) and the guard's own candidate, computed as the API does: the pair prepared by
 `Registrar.prepare`, `refine.guard_icp` on its refinement clouds, `score.overlap_fitness` of both
@@ -23,9 +23,11 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
+from genreg_core.config import OBJECT_MODEL  # noqa: E402  (no torch: threads are set before it loads)
+
 THRESHOLDS = (0.0, 0.3, 0.4, 0.5, 1.0)
 SPACINGS = (3.0, 1.0, 0.6)
-KINDS = (("partial", "modelnet40"), ("crop", "modelnet40_partial"))
+KINDS = (("partial", OBJECT_MODEL), ("crop", "modelnet40_partial"))
 
 
 def main() -> int:

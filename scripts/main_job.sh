@@ -32,7 +32,8 @@ elif [ -f genreg_core/weights/7scenes.pt ]; then
   MODEL=7scenes
 else
   MODEL=$(python -c "from genreg_ros.replay.harness import yaml_param; \
-print(yaml_param('config/genreg.yaml', 'model.checkpoint', 'modelnet40'))")
+from genreg_core.config import OBJECT_MODEL; \
+print(yaml_param('config/genreg.yaml', 'model.checkpoint', OBJECT_MODEL))")
 fi
 echo "model: $MODEL    ROS_DOMAIN_ID=$ROS_DOMAIN_ID    report: $REPORT/report.md"
 

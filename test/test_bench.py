@@ -103,7 +103,7 @@ def test_smoke_suite_end_to_end_on_the_shipped_models(tmp_path, run_bench_cli):
     proc, data = run_bench_cli(["--suite", "smoke", "--threads", "2", "--no-progress", "--max-pairs", "3"],
                                tmp_path, timeout=300)
     assert "smoke suite:" in proc.stdout and "with 2 threads" in proc.stdout
-    assert data["meta"]["checkpoints"] == {"object": "modelnet40", "scene": "7scenes"}
+    assert data["meta"]["checkpoints"] == {"object": "modelnet40_dgcnn", "scene": "7scenes"}
     threads = data["meta"]["threads"]
     assert threads["requested"] == threads["torch"] == 2 and threads["OMP_NUM_THREADS"] == "2"
     assert threads["OMP_WAIT_POLICY"] == "PASSIVE" and not data["skipped"]

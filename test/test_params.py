@@ -44,7 +44,7 @@ def test_params_file_names_and_values_match_the_dataclasses(name):
 
 def test_scene_file_is_for_the_scene_model_and_objects_file_for_the_object_model():
     assert defaults("genreg.yaml")["model.checkpoint"] == SCENE_OVERRIDES["model.checkpoint"] == "7scenes"
-    assert defaults("genreg_objects.yaml")["model.checkpoint"] == NodeConfig().model.checkpoint == "modelnet40"
+    assert defaults("genreg_objects.yaml")["model.checkpoint"] == NodeConfig().model.checkpoint == "modelnet40_dgcnn"
 
 
 def test_distance_settings_are_metres_with_auto():

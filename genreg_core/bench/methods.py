@@ -22,12 +22,12 @@ import torch
 
 from genreg_core.bench.baselines import BASELINES, BaselineFn, BaselineParams, identity
 from genreg_core.bench.datasets import OBJECT, SCENE
-from genreg_core.config import FallbackConfig, PDSACConfig, RefineConfig, RegistrationConfig
+from genreg_core.config import OBJECT_MODEL, SCENE_MODEL, FallbackConfig, PDSACConfig, RefineConfig, RegistrationConfig
 from genreg_core.errors import CheckpointError
 from genreg_core.pdsac import seeded_generator
 from genreg_core.registration import Registrar
 
-DEFAULT_CHECKPOINTS = {OBJECT: "modelnet40", SCENE: "7scenes"}
+DEFAULT_CHECKPOINTS = {OBJECT: OBJECT_MODEL, SCENE: SCENE_MODEL}
 # genreg+p2plane+fallback: with the opt-in classical fallback (FPFH + RANSAC below confidence 0.3); reported
 # apart, never counted as GenReg's own figures
 GENREG_METHODS = ("genreg", "genreg+icp", "genreg+p2plane", "genreg+gicp", "genreg+p2plane+fallback")

@@ -15,6 +15,7 @@ import sys
 from pathlib import Path
 
 from genreg_core.checkpoint import resolve_checkpoint
+from genreg_core.config import OBJECT_MODEL
 from genreg_core.errors import GenRegError
 from genreg_ros.replay import harness
 from genreg_ros.replay.harness import DEFAULT_PARAMS, ReplayError, ReplayOptions, replay, yaml_param
@@ -57,7 +58,7 @@ def main(argv: list[str] | None = None) -> int:
     )
     try:
         if not args.connect:  # a missing checkpoint fails here, not after the node's start-up
-            resolve_checkpoint(options.checkpoint or yaml_param(options.params_file, "model.checkpoint", "modelnet40"))
+            resolve_checkpoint(options.checkpoint or yaml_param(options.params_file, "model.checkpoint", OBJECT_MODEL))
         result = replay(args.bag, options)
     except (GenRegError, ReplayError, OSError, ValueError) as exc:
         print(f"genreg-replay: error: {exc}", file=sys.stderr)
