@@ -3,11 +3,14 @@
 
     git show 4aa431f:genreg_core/weights/modelnet40_partial.pt > prev.pt   # the GroupNorm partial model
     python scripts/fold_norm.py prev.pt runs/modelnet40_local_init.pt --pairs 150
+    python scripts/fold_norm.py modelnet40_dgcnn runs/modelnet40_dgcnn_local_init.pt --kind objects
 
-Why and how: `genreg_core.model.fold`. This script measures the average statistics on RPM-Net-style crops
-of the ModelNet40 *train* split (seen categories, seed 5), folds them and writes the checkpoint (`norm:
-none`, `pointer_centring: false`). It prints the accuracy of both models alone on 100 other training
-crops (seed 2): about equal before fine-tuning (25.71 / 2.02 deg, 69 % against 23.75 / 2.16, 69 %).
+Why and how: `genreg_core.model.fold`. This script measures the average statistics on pairs of the
+ModelNet40 *train* split (seen categories): RPM-Net-style crops (seed 5; `--kind crops`, the partial model's)
+or the object model's training pairs, clean, noise and one-side partial mixed (seed 11; `--kind objects`).
+It folds them and writes the checkpoint (`norm: none`, `pointer_centring: false`), and prints the accuracy of
+both models alone on 100 other training pairs of the same kind (seed 2): crops, about equal before
+fine-tuning (25.71 / 2.02 deg, 69 % against 23.75 / 2.16, 69 %).
 """
 
 from __future__ import annotations
@@ -25,6 +28,7 @@ def main() -> int:
     p.add_argument("out", type=Path, help="checkpoint file to write (fp32)")
     p.add_argument("--pairs", type=int, default=150, help="training crops the statistics are averaged over")
     p.add_argument("--threads", type=int, default=2)
+    p.add_argument("--kind", choices=("crops", "objects"), default="crops", help="the pairs measured on")
     args = p.parse_args()
     from genreg_core.bench.cli import configure_threads
 
@@ -37,7 +41,7 @@ def main() -> int:
     from genreg_core.bench.datasets import RPMNetPairs
     from genreg_core.checkpoint import load_checkpoint, save_checkpoint
     from genreg_core.config import RefineConfig, RegistrationConfig
-    from genreg_core.data import load_modelnet40
+    from genreg_core.data import ModelNetPairs, load_modelnet40
     from genreg_core.metrics import transform_errors
     from genreg_core.model.fold import NormStatistics, fold_statistics
     from genreg_core.registration import Registrar
@@ -47,7 +51,9 @@ def main() -> int:
     cfg = RegistrationConfig(seed=0, refine=RefineConfig(method="none"))
 
     def crops(seed: int, n: int) -> list[dict]:
-        pairs = RPMNetPairs(shapes, seed=seed)
+        """n training pairs of the chosen kind."""
+        pairs = RPMNetPairs(shapes, seed=seed) if args.kind == "crops" else ModelNetPairs(
+            shapes, 512, ("clean", "noise", "partial"), seed=seed)
         return [pairs[int(i)] for i in np.random.default_rng(seed).choice(len(pairs), n, replace=False)]
 
     def accuracy(net: nn.Module) -> str:
@@ -68,11 +74,19 @@ def main() -> int:
 
     hooks = [m.register_forward_hook(lambda mod, inp, _out, name=name: record(name, group_moments(mod, inp[0])))
              for name, m in model.named_modules() if isinstance(m, nn.GroupNorm)]
-    for layer in ("query", "key"):
-        hooks.append(getattr(model.pointer, layer).register_forward_hook(
-            lambda _m, _inp, out, layer=layer: record(layer, out.mean(dim=1))))
+    def centres(_module: nn.Module, _inputs: tuple, h: torch.Tensor) -> None:
+        """The pointer's query and key centres of each cloud, from its GCNN features h (B, N, C): the maps
+        from h to them are affine (the backbone's linear layer, then the projections; inference folds them
+        into one product, `GenRegNet.first_products`, so the projections never run as modules)."""
+        f = model.encoder.mixer1(h.mean(dim=1))
+        record("query", model.pointer.query(f))
+        record("key", model.pointer.key(f))
+
+    if model.config.backbone != "dgcnn":
+        raise SystemExit("fold_norm.py: the pointer's centres are measured through backbone 'dgcnn''s linear layer")
+    hooks.append(model.encoder.gcnn.register_forward_hook(centres))
     registrar = Registrar(model, cfg)
-    for item in tqdm(crops(5, args.pairs), desc="statistics"):
+    for item in tqdm(crops(5 if args.kind == "crops" else 11, args.pairs), desc="statistics"):
         registrar.register(item["source"], item["target"])
     for h in hooks:
         h.remove()
