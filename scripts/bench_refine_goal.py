@@ -23,7 +23,7 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
-from genreg_core.config import OBJECT_MODEL  # noqa: E402  (no torch: threads are set before it loads)
+from genreg_core.config import OBJECT_MODEL  # no torch: threads are set before it loads
 
 DATASETS = ("modelnet-seen-partial", "modelnet-unseen-partial")
 

@@ -23,7 +23,7 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
-from genreg_core.config import OBJECT_MODEL  # noqa: E402  (no torch: threads are set before it loads)
+from genreg_core.config import OBJECT_MODEL  # no torch: threads are set before it loads
 
 THRESHOLDS = (0.0, 0.3, 0.4, 0.5, 1.0)
 SPACINGS = (3.0, 1.0, 0.6)

@@ -24,7 +24,7 @@ from genreg_core.bench.ablation import (
 )
 from genreg_core.bench.datasets import DATASETS, BenchOptions
 from genreg_core.checkpoint import save_checkpoint
-from genreg_core.config import ModelConfig, PDSACConfig, RegistrationConfig
+from genreg_core.config import OBJECT_MODEL, ModelConfig, PDSACConfig, RegistrationConfig
 from genreg_core.errors import DataNotFoundError
 from genreg_core.geometry import kabsch
 from genreg_core.metrics import transform_errors
@@ -125,7 +125,7 @@ def _mean_re(records: list[dict], method: str) -> float:
 
 
 def test_cli_ablation_writes_the_pose_solver_table(tmp_path, run_bench_cli):
-    """`genreg-bench --ablation pose-solver` with the shipped `modelnet40` on 3 pairs, in its own process
+    """`genreg-bench --ablation pose-solver` with the default object model on 3 pairs, in its own process
     (thread settings before OpenMP)."""
     _, data = run_bench_cli(["--ablation", "pose-solver", "--datasets", "modelnet-unseen-clean", "--max-pairs", "3",
                              "--threads", "1", "--no-progress"], tmp_path, timeout=120)
@@ -134,7 +134,7 @@ def test_cli_ablation_writes_the_pose_solver_table(tmp_path, run_bench_cli):
     assert section["name"] == "pose-solver" and list(section["datasets"]) == ["modelnet-unseen-clean"]
     info = section["datasets"]["modelnet-unseen-clean"]
     assert info["pairs"] == 3 and len(info["network_seconds"]) == 3 and info["num_points"] == 512
-    assert info["checkpoint"] == "modelnet40" and all(0.2 < x <= 1 for x in info["gt_inlier_ratio"])
+    assert info["checkpoint"] == OBJECT_MODEL and all(0.2 < x <= 1 for x in info["gt_inlier_ratio"])
     assert len(section["records"]) == 3 * len(SOLVERS)
     for r in section["records"]:
         assert "error" not in r and r["re_deg"] >= 0 and r["seconds"] > 0 and 0 <= r["inlier_ratio"] <= 1, r

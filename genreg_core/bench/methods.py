@@ -22,7 +22,14 @@ import torch
 
 from genreg_core.bench.baselines import BASELINES, BaselineFn, BaselineParams, identity
 from genreg_core.bench.datasets import OBJECT, SCENE
-from genreg_core.config import OBJECT_MODEL, SCENE_MODEL, FallbackConfig, PDSACConfig, RefineConfig, RegistrationConfig
+from genreg_core.config import (
+    OBJECT_MODEL,
+    SCENE_MODEL,
+    FallbackConfig,
+    PDSACConfig,
+    RefineConfig,
+    RegistrationConfig,
+)
 from genreg_core.errors import CheckpointError
 from genreg_core.pdsac import seeded_generator
 from genreg_core.registration import Registrar
