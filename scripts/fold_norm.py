@@ -26,7 +26,7 @@ def main() -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("checkpoint", help="shipped name or file, GroupNorm model")
     p.add_argument("out", type=Path, help="checkpoint file to write (fp32)")
-    p.add_argument("--pairs", type=int, default=150, help="training crops the statistics are averaged over")
+    p.add_argument("--pairs", type=int, default=150, help="training pairs the statistics are averaged over")
     p.add_argument("--threads", type=int, default=2)
     p.add_argument("--kind", choices=("crops", "objects"), default="crops", help="the pairs measured on")
     args = p.parse_args()
@@ -47,10 +47,12 @@ def main() -> int:
     from genreg_core.registration import Registrar
 
     model, meta = load_checkpoint(args.checkpoint)
+    if model.config.backbone != "dgcnn":
+        raise SystemExit("fold_norm.py: the pointer's centres are measured through backbone 'dgcnn''s linear layer")
     shapes = load_modelnet40("train", "seen")
     cfg = RegistrationConfig(seed=0, refine=RefineConfig(method="none"))
 
-    def crops(seed: int, n: int) -> list[dict]:
+    def training_pairs(seed: int, n: int) -> list[dict]:
         """n training pairs of the chosen kind."""
         pairs = RPMNetPairs(shapes, seed=seed) if args.kind == "crops" else ModelNetPairs(
             shapes, 512, ("clean", "noise", "partial"), seed=seed)
@@ -59,7 +61,7 @@ def main() -> int:
     def accuracy(net: nn.Module) -> str:
         registrar = Registrar(net, cfg)
         re = np.array([transform_errors(registrar.register(it["source"], it["target"]).transformation,
-                                        it["transform"])[0] for it in tqdm(crops(2, 100), desc="evaluate")])
+                                        it["transform"])[0] for it in tqdm(training_pairs(2, 100), desc="evaluate")])
         return f"RE mean {re.mean():.2f} deg, median {np.median(re):.2f}, {np.mean(re < 5):.0%} under 5 deg"
 
     # 1. average statistics: per group mean and variance of each GroupNorm input, queries' and keys' means
@@ -82,11 +84,9 @@ def main() -> int:
         record("query", model.pointer.query(f))
         record("key", model.pointer.key(f))
 
-    if model.config.backbone != "dgcnn":
-        raise SystemExit("fold_norm.py: the pointer's centres are measured through backbone 'dgcnn''s linear layer")
     hooks.append(model.encoder.gcnn.register_forward_hook(centres))
     registrar = Registrar(model, cfg)
-    for item in tqdm(crops(5 if args.kind == "crops" else 11, args.pairs), desc="statistics"):
+    for item in tqdm(training_pairs(5 if args.kind == "crops" else 11, args.pairs), desc="statistics"):
         registrar.register(item["source"], item["target"])
     for h in hooks:
         h.remove()
