@@ -214,7 +214,7 @@ def test_transform_cloud_matches_independent_math(fmt, big):
 
 def test_from_cdr_reads_serialised_clouds_as_the_rclpy_message_and_names_bad_bytes():
     """The node's raw subscriptions: `from_cdr` of rclpy-serialised clouds (little and big endian, NaN rows,
-    float64) decodes to exactly what the rclpy message decodes to; bytes that are no
+    float64) decodes to exactly what the rclpy message decodes to, its data a view of the bytes; bytes that are no
     PointCloud2 raise PointCloud2Error('undecodable_message')."""
     from rclpy.serialization import serialize_message
 
@@ -229,8 +229,10 @@ def test_from_cdr_reads_serialised_clouds_as_the_rclpy_message_and_names_bad_byt
         rec["x"][::7] = np.nan
         msg = array_to_msg(Header(frame_id="lidar"), rec, is_dense=False)
         msg.header.stamp.sec, msg.header.stamp.nanosec = 12, 345
-        raw = from_cdr(serialize_message(msg))
+        serialised = serialize_message(msg)
+        raw = from_cdr(serialised)
         assert raw.header.frame_id == "lidar" and (raw.header.stamp.sec, raw.header.stamp.nanosec) == (12, 345)
+        assert np.shares_memory(raw.data, np.frombuffer(serialised, np.uint8))  # a view of the bytes: no copy
         ours, theirs = read_points(raw), read_points(msg)
         np.testing.assert_array_equal(ours.points, theirs.points)
         np.testing.assert_array_equal(ours.mask, theirs.mask)
