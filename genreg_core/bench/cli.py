@@ -15,8 +15,8 @@ the frames (e.g. 2 for a quicker look).
 object models with different backbones on the object datasets: by default the shipped pointmixer
 `modelnet40` and dgcnn `modelnet40_dgcnn`, or --backbones NAME=CHECKPOINT ...; --paper-checkpoint adds
 a row for a checkpoint of the paper's own generator).
-Checkpoints: objects (ModelNet40) use --object-checkpoint (default: shipped "modelnet40"), scenes
-(7-Scenes, SUN3D) use --scene-checkpoint (default: shipped "7scenes"); --checkpoint sets both. A missing
+Checkpoints: objects (ModelNet40) use --object-checkpoint (default: genreg_core.config.OBJECT_MODEL), scenes
+(7-Scenes, SUN3D) use --scene-checkpoint (default: SCENE_MODEL); --checkpoint sets both. A missing
 checkpoint skips the GenReg methods on those datasets with a message. Threads are fixed before torch
 and Open3D load: OMP_NUM_THREADS (Open3D), torch intra-op threads, small_gicp workers, and
 OMP_WAIT_POLICY=PASSIVE unless set (spinning OpenMP workers starve on a shared 2-core machine).
@@ -28,6 +28,8 @@ import argparse
 import os
 import sys
 import time
+
+from genreg_core.config import OBJECT_MODEL, SCENE_MODEL
 
 ABLATIONS = ("pose-solver", "backbone")  # `ablation.ABLATIONS` (not imported here: torch loads after threads)
 SUITE_NAMES = ("smoke", "quick", "full", "partial")  # `datasets.SUITES` (likewise)
@@ -53,8 +55,8 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     p.add_argument("--out", required=True, help="output folder (report.md, results.json, PNGs)")
     p.add_argument("--threads", type=int, default=2, help="CPU threads for every library (default 2)")
     p.add_argument("--checkpoint", help="GenReg checkpoint (name or path) for objects and scenes")
-    p.add_argument("--object-checkpoint", help="checkpoint for ModelNet40 datasets (default modelnet40)")
-    p.add_argument("--scene-checkpoint", help="checkpoint for 7-Scenes/SUN3D datasets (default 7scenes)")
+    p.add_argument("--object-checkpoint", help=f"checkpoint for ModelNet40 datasets (default {OBJECT_MODEL})")
+    p.add_argument("--scene-checkpoint", help=f"checkpoint for 7-Scenes/SUN3D datasets (default {SCENE_MODEL})")
     p.add_argument("--datasets", nargs="+", help="only these datasets of the suite")
     p.add_argument("--methods", nargs="+", help="only these methods")
     p.add_argument("--max-pairs", type=int, help="at most this many pairs per dataset")
