@@ -28,6 +28,9 @@ soak: the node runs in its own process (as with `ros2 run`) with the params file
   the arrival of the pair's later cloud in the node to the result, before the aligned cloud is encoded and
   the transform published (the figure /diagnostics' latency_ms.median is made of). `end-to-end`: from this
   process publishing the later cloud to receiving the node's transform for it.
+  CPU (after the warm-up, from /proc): the node's cores, split into its own process (taking, decoding,
+  handing over and publishing the clouds) and its worker processes (the registrations), and this
+  publishing process's; and the same as CPU milliseconds per registered pair (the per-pair budget).
   Accuracy: each registered pair's transform against the ground truth (RGBDSequence.relative_pose, or the
   bag's poses): RE (deg) / TE (m) medians and the share with RE < 2 deg and TE < 5 cm; the identity on the
   same pairs for scale (gap-1 motion at 30 Hz is small).
@@ -273,9 +276,9 @@ def process_tree(pid: int) -> list[int]:
     return tree
 
 
-def _proc_sum(pid: int, one) -> float:
+def _proc_sum(pid: int, one, tree: bool = True) -> float:
     total = 0.0
-    for p in process_tree(pid):
+    for p in process_tree(pid) if tree else [pid]:
         try:
             total += one(p)
         except (OSError, ValueError):  # ended meanwhile
@@ -291,12 +294,13 @@ def rss_mb(pid: int) -> float:
     return _proc_sum(pid, one)
 
 
-def cpu_seconds(pid: int) -> float:
-    """User + system CPU time of the node and its worker processes (all their threads), s."""
+def cpu_seconds(pid: int, tree: bool = True) -> float:
+    """User + system CPU time of the node and its worker processes (all their threads), s; `tree` False:
+    of the node's own process only."""
     def one(p: int) -> float:
         fields = Path(f"/proc/{p}/stat").read_text().rsplit(")", 1)[1].split()
         return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
-    return _proc_sum(pid, one)
+    return _proc_sum(pid, one, tree)
 
 
 def percentiles(values) -> dict[str, float]:
@@ -453,7 +457,8 @@ def run_soak(args, node: NodeProcess, client: SoakClient, clouds: CloudSet, node
                         "paired": int(d.get("paired", 0)), "registered": reg,
                         "superseded": int(d.get("dropped.superseded", 0)), "other_drops": other,
                         "failed": int(d.get("failed", 0)), "latency_ms_median": float(d.get("latency_ms.median", "nan")),
-                        "rss_mb": rss_mb(pid), "node_cpu_s": cpu_seconds(pid), "own_cpu_s": time.process_time()})
+                        "rss_mb": rss_mb(pid), "node_cpu_s": cpu_seconds(pid),
+                        "node_process_cpu_s": cpu_seconds(pid, tree=False), "own_cpu_s": time.process_time()})
         s = samples[-1]
         print(f"{t:5.0f} {s['sent']:5d} {s['received_source']:5d} {s['paired']:6d} {reg:6d} {rate:5.1f} "
               f"{s['superseded']:6d} {other:5d} {s['failed']:4d} {d.get('latency_ms.median', '?'):>7s} "
@@ -482,8 +487,8 @@ def run_soak(args, node: NodeProcess, client: SoakClient, clouds: CloudSet, node
                 next_tick = now + period
         time.sleep(max(0.0, min(next_tick, next_report) - time.monotonic()))
     t_end = time.monotonic()
-    at_end = {"t": t_end - t_start, "node_cpu_s": cpu_seconds(pid), "own_cpu_s": time.process_time(),
-              "rss_mb": rss_mb(pid)}  # the end of the input (the report below comes after settling)
+    at_end = {"t": t_end - t_start, "node_cpu_s": cpu_seconds(pid), "node_process_cpu_s": cpu_seconds(pid, tree=False),
+              "own_cpu_s": time.process_time(), "rss_mb": rss_mb(pid)}  # the end of the input (the report below comes after settling)
     settle(client, node, sent, timeout=30.0)
     after = client.counts(newer_than=time.monotonic(), timeout=3.0) or client.counts() or {}
     report(time.monotonic() - t_start)
@@ -556,7 +561,9 @@ def summarize_soak(args, client: SoakClient, clouds: CloudSet, sent: list[PairRe
            "slope_mb_per_min": 60 * slope, "samples_1hz": rss_log}
     span = max(at_end["t"] - warm["t"], 1e-9)  # from the warm-up end to the last publication
     cpu = {"node": (at_end["node_cpu_s"] - warm["node_cpu_s"]) / span,
+           "node_process": (at_end["node_process_cpu_s"] - warm["node_process_cpu_s"]) / span,
            "publisher": (at_end["own_cpu_s"] - warm["own_cpu_s"]) / span}
+    cpu["workers"] = cpu["node"] - cpu["node_process"]
     steady_diag = [d for t, d in diag_log if t_start + warmup <= t <= t_end]
     timing_keys = ("decode_ms", "preprocess_ms", "register_ms", "encode_ms", "publish_ms", "points_registered",
                    "points_target", "confidence", "initial_guess_won")
@@ -652,8 +659,13 @@ def print_summary(m: dict, args) -> None:
         f"{t['publish_ms']:.1f} ms; callback {t['callback_ms.median']:.2f} ms; {t['points_registered']:.0f} source / "
         f"{t['points_target']:.0f} target points registered; winning start "
         f"{', '.join(f'{k} {v}' for k, v in m['winning_start'].items()) or '-'}")
-    add(f"  CPU          node {m['cpu_cores_after_warmup']['node']:.2f} cores, publisher (this process) "
-        f"{m['cpu_cores_after_warmup']['publisher']:.2f} cores (after warm-up)")
+    cpu, rate = m["cpu_cores_after_warmup"], m["registered_per_s_after_warmup"]
+    per_pair = ", ".join(f"{name} {1e3 * cpu[key] / rate:.1f}" for name, key in
+                         (("node process", "node_process"), ("workers", "workers"), ("publisher", "publisher"))
+                         ) if rate > 0 else "no pair registered"
+    add(f"  CPU          node {cpu['node']:.2f} cores (its own process {cpu['node_process']:.2f}, workers "
+        f"{cpu['workers']:.2f}), publisher (this process) {cpu['publisher']:.2f} cores (after warm-up); per "
+        f"registered pair: {per_pair} ms")
     add(f"  acceptance   rate {ok(a['rate'])}, p95 {ok(a['p95'])}, RSS flat (growth <= {args.rss_tolerance:g} MB) "
         f"{ok(a['rss_flat'])}")
     print("\n".join(lines), flush=True)
