@@ -3,11 +3,12 @@
 glibc's malloc serves blocks above its mmap threshold with fresh mappings and returns freed memory at the
 top of the heap to the system once more than its trim threshold is free. The network, ICP and training's
 PDSAC allocate and free a few MB per stage, so by default every call maps fresh pages and faults them in
-again: training's PDSAC at N = 512 faults about 4,200 pages per call, and a fifth to a third of a training
-process's CPU time went to the kernel. `retain_freed_memory` serves every block from the heap (no mappings:
-glibc still maps when the heap cannot grow) and keeps freed memory there for reuse: after it, training's
-PDSAC faults 16x fewer pages (`test_memory.py`), and 15 training iterations fault 7x less (sys time 6.9 ->
-1.6 s). Inference's PDSAC (compiled, `genreg_core.kernels`) allocates no large table and faults none either
+again: training's PDSAC at N = 512 faults 865-4,430 pages per call (glibc moves its thresholds as blocks are
+freed, so the figure varies by process; 8,717 with the thresholds held at their start), and a fifth to a
+third of a training process's CPU time went to the kernel. `retain_freed_memory` serves every block from the
+heap (no mappings: glibc still maps when the heap cannot grow) and keeps freed memory there for reuse: after
+it, training's PDSAC faults 0-53 pages per call (`test_memory.py`), and 15 training iterations fault 7x less
+(sys time 6.9 -> 1.6 s). Inference's PDSAC (compiled, `genreg_core.kernels`) allocates no large table and faults none either
 way. The cost is that
 the resident size stays at its peak instead of shrinking between registrations.
 

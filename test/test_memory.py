@@ -1,5 +1,11 @@
-"""genreg_core.memory: with freed memory retained, training's PDSAC (torch form, gradient recorded) faults 10x
-fewer fresh pages per call; inference's compiled PDSAC faults none even without it."""
+"""genreg_core.memory: with freed memory retained, training's PDSAC (torch form, gradient recorded) faults almost
+no fresh pages per call; inference's compiled PDSAC faults none even without it.
+
+glibc's default malloc moves its mmap and trim thresholds as blocks are freed, so its faults per call vary
+from process to process and call to call (0 to 6,650 per call; 30-call means 2,240-4,430 over 12 processes,
+and once 865 over 10 calls in CI). The cost retain_freed_memory removes is therefore asserted against glibc's
+initial policy held fixed (MALLOC_MMAP_THRESHOLD_ at its 128 KiB start: 8,717 faults on every call), and
+the dynamic default only relative to the retained figure."""
 
 from __future__ import annotations
 
@@ -26,17 +32,18 @@ if sys.argv[2] == "training":  # the torch form: gradient recorded through the (
     run = lambda: pdsac(a, b, cfg, g, weights=w)
 else:  # inference: compiled kernels, no table
     run = lambda: pdsac_bidirectional(a[:1], b[:1], b[:1], a[:1], cfg, g, (w[:1], w[1:]))
-for _ in range(3):
+for _ in range(5):
     run()
 before = resource.getrusage(resource.RUSAGE_SELF).ru_minflt
-for _ in range(10):
+for _ in range(30):
     run()
-print((resource.getrusage(resource.RUSAGE_SELF).ru_minflt - before) / 10)
+print((resource.getrusage(resource.RUSAGE_SELF).ru_minflt - before) / 30)
 """
 
 
-def _faults_per_call(mode: str, form: str) -> float:
+def _faults_per_call(mode: str, form: str, **malloc_env: str) -> float:
     env = {k: v for k, v in os.environ.items() if not k.startswith("MALLOC_")} | {"OMP_NUM_THREADS": "1"}
+    env |= malloc_env
     out = subprocess.run([sys.executable, "-c", PROBE, mode, form], capture_output=True, text=True, check=True,
                          env=env)
     return float(out.stdout.strip().splitlines()[-1])
@@ -44,7 +51,9 @@ def _faults_per_call(mode: str, form: str) -> float:
 
 @pytest.mark.skipif(not sys.platform.startswith("linux"), reason="glibc's malloc")
 def test_retained_memory_cuts_training_pdsacs_page_faults_and_inference_faults_none():
-    default, retained = _faults_per_call("default", "training"), _faults_per_call("retain", "training")
-    assert default > 1000  # fresh pages on every call (4,200 measured): the cost retain_freed_memory removes
-    assert retained < default / 10
+    retained = _faults_per_call("retain", "training")
+    assert retained < 150  # 0-53 measured (a rare call still grows the heap)
+    fixed = _faults_per_call("default", "training", MALLOC_MMAP_THRESHOLD_="131072")
+    assert fixed > 5000  # every large block freshly mapped and faulted in on every call (8,717 measured)
+    assert _faults_per_call("default", "training") > 3 * retained  # glibc's moving thresholds: 865-4,430
     assert _faults_per_call("default", "inference") < 50  # the compiled inference allocates no large table
