@@ -8,9 +8,9 @@ freed, so the figure varies by process; 8,717 with the thresholds held at their 
 third of a training process's CPU time went to the kernel. `retain_freed_memory` serves every block from the
 heap (no mappings: glibc still maps when the heap cannot grow) and keeps freed memory there for reuse: after
 it, training's PDSAC faults 0-53 pages per call (`test_memory.py`), and 15 training iterations fault 7x less
-(sys time 6.9 -> 1.6 s). Inference's PDSAC (compiled, `genreg_core.kernels`) allocates no large table and faults none either
-way. The cost is that
-the resident size stays at its peak instead of shrinking between registrations.
+(sys time 6.9 -> 1.6 s). Inference's PDSAC (compiled, `genreg_core.kernels`) allocates no large table and
+faults none either way. The cost is that the resident size stays at its peak instead of shrinking between
+registrations.
 
 `genreg-train`, `genreg-bench`, `register_node` and the benchmark scripts call it at start-up; a program
 using the registration API can call it too (or set MALLOC_TRIM_THRESHOLD_=1073741824 and MALLOC_MMAP_MAX_=0

@@ -42,8 +42,7 @@ print((resource.getrusage(resource.RUSAGE_SELF).ru_minflt - before) / 30)
 
 
 def _faults_per_call(mode: str, form: str, **malloc_env: str) -> float:
-    env = {k: v for k, v in os.environ.items() if not k.startswith("MALLOC_")} | {"OMP_NUM_THREADS": "1"}
-    env |= malloc_env
+    env = {k: v for k, v in os.environ.items() if not k.startswith("MALLOC_")} | {"OMP_NUM_THREADS": "1"} | malloc_env
     out = subprocess.run([sys.executable, "-c", PROBE, mode, form], capture_output=True, text=True, check=True,
                          env=env)
     return float(out.stdout.strip().splitlines()[-1])
