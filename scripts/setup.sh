@@ -18,6 +18,7 @@ if [ ! -f "$STAMP" ] || [ "$(cat "$STAMP")" != "$REQ_HASH" ]; then
   # torch pinned: the CPU wheel on local disk (a bare 'torch' pulls a multi-GB CUDA build).
   pip install -q torch==2.13.0
   pip install -q numpy scipy numba open3d small_gicp kiss-matcher rosbags mcap tqdm matplotlib pytest ruff pyyaml pillow \
+    hypothesis scikit-learn \
     colcon-common-extensions
   pip install -q ros-kilted-rclpy ros-kilted-rmw-fastrtps-cpp ros-kilted-sensor-msgs \
     ros-kilted-geometry-msgs ros-kilted-diagnostic-msgs ros-kilted-lifecycle-msgs ros-kilted-rcl-lifecycle \
