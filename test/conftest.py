@@ -12,6 +12,15 @@ from pathlib import Path
 import pytest
 
 REPO = Path(__file__).resolve().parent.parent
+
+try:  # property-based tests: "ci" (the default) keeps them short, HYPOTHESIS_PROFILE=local runs them long
+    from hypothesis import settings as _hypothesis_settings
+
+    _hypothesis_settings.register_profile("ci", max_examples=300, deadline=None)
+    _hypothesis_settings.register_profile("local", max_examples=10_000, deadline=None)
+    _hypothesis_settings.load_profile(os.environ.get("HYPOTHESIS_PROFILE", "ci"))
+except ImportError:  # hypothesis missing: only the property-based tests need it (they skip)
+    pass
 FASTDDS_PROFILE = REPO / "config" / "fastdds_large_clouds.xml"
 
 
