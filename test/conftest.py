@@ -21,6 +21,7 @@ try:  # property-based tests: "ci" (the default) keeps them short, HYPOTHESIS_PR
     _hypothesis_settings.load_profile(os.environ.get("HYPOTHESIS_PROFILE", "ci"))
 except ImportError:  # hypothesis missing: only the property-based tests need it (they skip)
     pass
+
 FASTDDS_PROFILE = REPO / "config" / "fastdds_large_clouds.xml"
 
 
