@@ -23,6 +23,7 @@ from __future__ import annotations
 import array
 import sys
 from dataclasses import dataclass
+from itertools import pairwise
 from typing import Any
 
 import numpy as np
@@ -48,6 +49,7 @@ _DATATYPES: dict[int, np.dtype] = {
 }
 _NUMPY_TO_DATATYPE = {(dt.kind, dt.itemsize): code for code, dt in _DATATYPES.items()}
 _XYZ = ("x", "y", "z")
+_PADDING = "_"  # PCL's name for padding fields: it may repeat
 
 
 class PointCloud2Error(ValueError):
@@ -114,16 +116,19 @@ def parse_layout(msg: PointCloud2) -> CloudLayout:
         raise PointCloud2Error("empty_cloud", f"cloud is empty (width={msg.width}, height={msg.height})")
     step = int(msg.point_step)
     fields = tuple((f.name, int(f.offset), int(f.datatype), max(int(f.count), 1)) for f in msg.fields)
+    names = [f[0] for f in fields]
+    repeated = sorted({n for n in names if names.count(n) > 1 and n != _PADDING})
+    if repeated:
+        raise PointCloud2Error("bad_layout", f"field name(s) {', '.join(map(repr, repeated))} appear more than once")
     by_name = {f[0]: f for f in fields}
     missing = [n for n in _XYZ if n not in by_name]
     if missing:
-        names = [f[0] for f in fields]
         raise PointCloud2Error("missing_xyz", f"cloud has no {'/'.join(missing)} field (fields: {names})")
     order = ">" if msg.is_bigendian else "<"
     for name, offset, datatype, count in fields:
         if datatype not in _DATATYPES:
             raise PointCloud2Error("bad_layout", f"field '{name}' has unknown datatype {datatype}")
-        if offset + _DATATYPES[datatype].itemsize * count > step:
+        if offset < 0 or offset + _DATATYPES[datatype].itemsize * count > step:
             raise PointCloud2Error(
                 "bad_layout", f"field '{name}' (offset {offset}) does not fit in point_step {step}"
             )
@@ -135,6 +140,11 @@ def parse_layout(msg: PointCloud2) -> CloudLayout:
                 "bad_xyz_type", f"field '{name}' must be FLOAT32 or FLOAT64, got datatype {datatype}"
             )
         xyz_dtypes.append(_DATATYPES[datatype].newbyteorder(order))
+    spans = sorted((by_name[n][1], by_name[n][1] + _DATATYPES[by_name[n][2]].itemsize * by_name[n][3], n) for n in _XYZ)
+    for (_, end, first), (start, _, second) in pairwise(spans):
+        if start < end:
+            raise PointCloud2Error("bad_layout", f"fields '{first}' and '{second}' overlap in the point record "
+                                   f"(offsets {by_name[first][1]} and {by_name[second][1]})")
     if int(msg.row_step) < int(msg.width) * step:
         raise PointCloud2Error(
             "bad_layout", f"row_step {msg.row_step} < width {msg.width} * point_step {step}"
@@ -176,7 +186,8 @@ def read_points(msg: PointCloud2, max_points: int | None = None, finite_only: bo
     """Decode a PointCloud2: finite x, y, z (every point with finite_only=False) plus the raw records of
     every point.
 
-    Raises PointCloud2Error with reason 'empty_cloud', 'missing_xyz', 'bad_xyz_type', 'bad_layout',
+    Raises PointCloud2Error with reason 'empty_cloud', 'missing_xyz', 'bad_xyz_type', 'bad_layout' (unknown
+    datatype, a field outside point_step, a repeated field name, overlapping x/y/z, row_step too small),
     'truncated_data', 'too_many_points' or (finite_only) 'no_finite_points'.
     """
     layout = parse_layout(msg)

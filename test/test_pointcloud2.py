@@ -169,6 +169,31 @@ def test_bad_clouds_raise_with_reason(case, reason):
     assert err.value.reason == reason
 
 
+@pytest.mark.parametrize(
+    ("fields", "text"),
+    [
+        (XYZI_PADDED + [("x", 12, F32)], "'x' appear more than once"),  # a second x
+        (XYZI_PADDED[:3] + [("intensity", 12, F32), ("intensity", 16, F32)], "'intensity' appear more than once"),
+        ([("x", 0, F32), ("y", 0, F32), ("z", 0, F32)], "overlap"),  # all three at offset 0
+        ([("x", 0, F64), ("y", 4, F32), ("z", 12, F32)], "fields 'x' and 'y' overlap"),  # x's 8 bytes cover y
+        ([("z", 0, F32), ("x", 8, F32), ("y", 2, F32)], "fields 'z' and 'y' overlap"),  # any field order
+    ],
+)
+def test_repeated_names_and_overlapping_xyz_are_bad_layouts(fields, text):
+    """A repeated field name or x/y/z sharing bytes would decode to a silently wrong cloud: rejected."""
+    msg = build(fields, [(1.0, 2.0, 3.0, 4.0, 5.0)] * 3, point_step=20)
+    with pytest.raises(PointCloud2Error, match=text) as err:
+        read_points(msg)
+    assert err.value.reason == "bad_layout" and "\n" not in str(err.value)
+
+
+def test_repeated_padding_fields_are_accepted():
+    """PCL names padding fields '_', and may repeat them."""
+    msg = build([("x", 0, F32), ("y", 4, F32), ("z", 8, F32), ("_", 12, F32), ("_", 16, F32)],
+                [(1.0, 2.0, 3.0, 0.0, 0.0)] * 2, point_step=20)
+    np.testing.assert_array_equal(read_points(msg).points, [[1.0, 2.0, 3.0]] * 2)
+
+
 def test_large_cloud_round_trip_matches_struct_on_a_sample():
     rng = np.random.default_rng(1)
     n = 50_000
