@@ -1,0 +1,190 @@
+"""The synthetic LiDAR (genreg_core.data.synthetic_lidar) against analytic truth, and the shipped scene
+profile (model, PDSAC and GICP settings of config/genreg.yaml) registering its scans.
+
+Truth is independent of the generator: ranges and intensities from the beam angles and a plane's
+equation written out here, world points checked against signed distance functions of the primitives,
+and registration errors against the transform the test itself composes from the sensor poses and the
+kidnap motion it applies to the source points. The registered scans keep their duplicate returns."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from genreg_core.config import from_dict
+from genreg_core.data.synthetic_lidar import (
+    LidarScan,
+    LidarSensor,
+    Scene,
+    default_sensor,
+    kidnap,
+    lidar_scan,
+    make_scene,
+    nearby_pose,
+    random_sensor_pose,
+    scan,
+    sensor_pose,
+)
+from genreg_core.geometry import apply_transform
+from genreg_core.metrics import transform_errors
+from genreg_core.registration import Registrar
+from genreg_ros.config import NodeConfig, defaults
+
+EXACT = {"range_noise": 0.0, "duplicate_share": 0.0}  # a sensor without noise or dual returns
+
+
+def wall(distance: float = 5.0) -> Scene:
+    """One plane x = distance, facing the origin."""
+    s = Scene("wall")
+    s.add_plane((distance, 0.0, 0.0), (-1.0, 0.0, 0.0), 0.8)
+    return s
+
+
+def beam_angles(sensor: LidarSensor) -> tuple[np.ndarray, np.ndarray]:
+    """Elevation and azimuth of every ray, beam-major, from the sensor's stated beam pattern."""
+    elev = np.deg2rad(np.repeat(np.asarray(sensor.elevations_deg), sensor.columns))
+    az = np.tile(np.arange(sensor.columns) * 2 * np.pi / sensor.columns, sensor.beams)
+    return elev, az
+
+
+def test_ranges_and_intensity_on_a_plane_match_the_analytic_values() -> None:
+    sensor = LidarSensor.uniform(32, (-25.0, 15.0), 1024, max_range=50.0, keep_misses=True, **EXACT)
+    got = lidar_scan(wall(5.0), np.eye(4), np.random.default_rng(0), sensor)
+    elev, az = beam_angles(sensor)
+    cos_x = np.cos(elev) * np.cos(az)  # the ray's x component; it meets x = 5 at range 5 / cos_x
+    with np.errstate(divide="ignore"):
+        expected = np.where(cos_x > 5.0 / 50.0, 5.0 / cos_x, 0.0)  # beyond max range or facing away: a miss
+    assert len(got) == sensor.beams * sensor.columns  # misses kept as (0, 0, 0), rays in order
+    np.testing.assert_allclose(np.linalg.norm(got.points, axis=1), expected, rtol=1e-5, atol=1e-5)
+    hit = expected > 0
+    np.testing.assert_allclose(got.points[hit, 0], 5.0, atol=1e-5)
+    np.testing.assert_array_equal(got.points[~hit], 0.0)
+    np.testing.assert_allclose(got.intensity, np.where(hit, 0.8 * cos_x, 0.0), atol=1e-6)  # reflectivity x cos
+    np.testing.assert_array_equal(got.ring, np.repeat(np.arange(32), 1024))
+
+
+def test_ground_points_lie_at_the_mounting_height_and_noise_has_its_stated_spread() -> None:
+    ground = Scene("ground")
+    ground.add_plane((0.0, 0.0, 0.0), (0.0, 0.0, 1.0), 0.5)
+    sensor = LidarSensor.uniform(32, (-25.0, 15.0), 1024, max_range=1000.0, range_noise=0.015, duplicate_share=0.0)
+    got = lidar_scan(ground, sensor_pose(3.0, -2.0, 1.8, yaw=0.7), np.random.default_rng(1), sensor)
+    rising = np.asarray(sensor.elevations_deg) >= 0
+    assert len(got) == (~rising).sum() * sensor.columns  # every downward beam hits, no upward one
+    elev = np.deg2rad(np.asarray(sensor.elevations_deg)[got.ring])
+    r = np.linalg.norm(got.points.astype(np.float64), axis=1)
+    error = r - 1.8 / np.sin(-elev)  # range error against the analytic range
+    assert abs(error.mean()) < 1e-3 and 0.014 < error.std() < 0.016
+    noiseless = lidar_scan(ground, sensor_pose(0.0, 0.0, 1.8), np.random.default_rng(1),
+                           LidarSensor.uniform(32, (-25.0, 15.0), 1024, max_range=1000.0, **EXACT))
+    np.testing.assert_allclose(noiseless.points[:, 2], -1.8, atol=1e-5)
+
+
+def box_sdf(p: np.ndarray, center: np.ndarray, half: np.ndarray, yaw: float) -> np.ndarray:
+    c, s = np.cos(yaw), np.sin(yaw)
+    rel = p - center
+    local = np.stack([c * rel[:, 0] + s * rel[:, 1], -s * rel[:, 0] + c * rel[:, 1], rel[:, 2]], 1)
+    q = np.abs(local) - half
+    return np.linalg.norm(np.maximum(q, 0), axis=1) + np.minimum(q.max(1), 0)
+
+
+def cylinder_sdf(p: np.ndarray, x: float, y: float, r: float, z0: float, z1: float) -> np.ndarray:
+    q = np.stack([np.hypot(p[:, 0] - x, p[:, 1] - y) - r, np.abs(p[:, 2] - (z0 + z1) / 2) - (z1 - z0) / 2], 1)
+    return np.linalg.norm(np.maximum(q, 0), axis=1) + np.minimum(q.max(1), 0)
+
+
+def test_points_from_two_poses_map_onto_the_same_world_surfaces() -> None:
+    """Scans from two tilted poses, mapped by their T_world_sensor, lie on the primitives' surfaces (their
+    signed distance functions are zero), and both see the box and the cylinder."""
+    s = Scene("objects")
+    s.add_plane((0.0, 0.0, 0.0), (0.0, 0.0, 1.0), 0.3)
+    s.add_box((6.0, 2.0, 1.0), (2.0, 3.0, 2.0), 0.4, 0.6)
+    s.add_cylinder(-4.0, -3.0, 0.5, 0.0, 2.5, 0.7)
+    sensor = LidarSensor.uniform(64, (-25.0, 15.0), 2048, max_range=60.0, **EXACT)
+    rng = np.random.default_rng(2)
+    for pose in (sensor_pose(0.0, 0.0, 1.5, 0.3, 0.05, -0.04), sensor_pose(1.0, -0.8, 1.2, -2.0, -0.08, 0.1)):
+        world = apply_transform(pose, lidar_scan(s, pose, rng, sensor).points.astype(np.float64))
+        sdf = np.stack([world[:, 2], box_sdf(world, np.array([6.0, 2.0, 1.0]), np.array([1.0, 1.5, 1.0]), 0.4),
+                        cylinder_sdf(world, -4.0, -3.0, 0.5, 0.0, 2.5)], 1)
+        assert np.abs(sdf).min(1).max() < 1e-4
+        on = np.abs(sdf) < 1e-4
+        assert on[:, 1].sum() > 500 and on[:, 2].sum() > 100
+        assert (sdf > -1e-4).all()  # nothing seen inside a solid
+
+
+def test_a_box_casts_a_shadow() -> None:
+    s = wall(10.0)
+    s.add_box((5.0, 0.0, 0.0), (2.0, 2.0, 2.0))  # x in [4, 6], |y|, |z| < 1: hides |y|, |z| < 10/6 on the wall
+    got = lidar_scan(s, np.eye(4), np.random.default_rng(0), LidarSensor.uniform(64, (-25.0, 15.0), 2048, **EXACT))
+    on_wall = got.points[:, 0] > 9.99
+    shadow = (np.abs(got.points[:, 1]) < 1.6) & (np.abs(got.points[:, 2]) < 1.6)
+    assert on_wall.any() and not (on_wall & shadow).any()
+    assert ((got.points[:, 0] > 3.99) & (got.points[:, 0] < 6.01)).sum() > 100  # the box itself
+
+
+@pytest.mark.parametrize("share", [0.0, 0.04, 0.1])
+def test_duplicate_returns_have_the_configured_share_and_follow_their_original(share: float) -> None:
+    sensor = LidarSensor.uniform(32, (-25.0, 15.0), 1024, max_range=30.0, duplicate_share=share)
+    got = lidar_scan(make_scene("room"), sensor_pose(0.2, 0.1, 1.3, 0.5), np.random.default_rng(3), sensor)
+    rays = sensor.beams * sensor.columns  # the room is closed: every ray hits
+    unique = np.unique(got.points, axis=0)
+    assert len(unique) == rays and len(got) == rays + round(share * rays)
+    same = (got.points[1:] == got.points[:-1]).all(1)
+    assert same.sum() == round(share * rays)  # each copy right after its original, exact in every field
+    np.testing.assert_array_equal(got.intensity[1:][same], got.intensity[:-1][same])
+    np.testing.assert_array_equal(got.ring[1:][same], got.ring[:-1][same])
+    np.testing.assert_array_equal(np.unique(got.ring), np.arange(32))  # ring count = beams
+    assert (np.bincount(got.ring) >= sensor.columns).all()
+    assert got.points.dtype == got.intensity.dtype == np.float32
+
+
+def test_scans_are_deterministic_given_the_rng_and_misses_are_dropped_by_default() -> None:
+    pose = sensor_pose(-5.0, 0.3, 1.8, 0.2)
+    a, b, c = (scan("street", pose, np.random.default_rng(seed), LidarSensor.hdl64(512)) for seed in (4, 4, 5))
+    np.testing.assert_array_equal(a.points, b.points)
+    np.testing.assert_array_equal(a.intensity, b.intensity)
+    assert len(a) != len(c) or not np.array_equal(a.points, c.points)
+    assert (np.linalg.norm(a.points, axis=1) > 0.3).all()  # no (0, 0, 0) misses, nothing inside min range
+    np.testing.assert_array_equal(np.unique(a.ring), np.arange(64))
+    assert 0.0 <= a.intensity.min() and a.intensity.max() <= 1.0 and (a.intensity > 0).mean() > 0.99
+
+
+# ----------------------------------------------------------------------------- registration
+def scene_profile() -> NodeConfig:
+    """The node's scene profile, the settings of config/genreg.yaml."""
+    nested: dict = {}
+    for name, value in defaults("genreg.yaml").items():
+        *groups, leaf = name.split(".")
+        node = nested
+        for g in groups:
+            node = node.setdefault(g, {})
+        node[leaf] = value
+    return from_dict(NodeConfig, nested)
+
+
+@pytest.fixture(scope="module")
+def registrar() -> Registrar:
+    profile = scene_profile()
+    cfg = profile.registration_config()
+    assert (profile.model.checkpoint, cfg.refine.method, cfg.pdsac.sample_size) == ("7scenes", "gicp", 4)
+    return Registrar.from_checkpoint(profile.model.checkpoint, cfg)
+
+
+@pytest.mark.parametrize("scene_name", ["room", "street"])
+def test_the_scene_profile_registers_kidnapped_lidar_scans(registrar: Registrar, scene_name: str) -> None:
+    """Four pairs per scene: scans 0.5-1 m apart, the source moved by up to 45 deg and 2 m about its
+    centroid; duplicate returns (4 %) kept."""
+    scene = make_scene(scene_name)
+    sensor = default_sensor(scene_name)
+    rng = np.random.default_rng(11)
+    for _ in range(4):
+        pose_target = random_sensor_pose(scene_name, rng)
+        pose_source = nearby_pose(pose_target, rng)
+        target = lidar_scan(scene, pose_target, rng, sensor)
+        source: LidarScan = lidar_scan(scene, pose_source, rng, sensor)
+        assert len(np.unique(source.points, axis=0)) < len(source)  # the duplicates are there
+        K = kidnap(rng, source.points.mean(0).astype(np.float64), 45.0, 2.0)
+        moved = apply_transform(K, source.points.astype(np.float64)).astype(np.float32)
+        truth = np.linalg.inv(pose_target) @ pose_source @ np.linalg.inv(K)  # target <- world <- sensor <- kidnapped
+        result = registrar.register(moved, target.points)
+        re, te = transform_errors(result.transformation, truth)
+        assert re < 2.0 and te < 0.3, f"{scene_name}: RE {re:.2f} deg, TE {te:.3f} m"
