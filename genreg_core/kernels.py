@@ -382,7 +382,7 @@ def invariant_geometry(points: np.ndarray, neighbours: np.ndarray) -> tuple[np.n
             b00, b11, b22 = a00 - q, a11 - q, a22 - q
             p = math.sqrt((b00 * b00 + b11 * b11 + b22 * b22 + 2 * (a01 * a01 + a02 * a02 + a12 * a12)) / 6)
             det_b = b00 * (b11 * b22 - a12 * a12) - a01 * (a01 * b22 - a12 * a02) + a02 * (a01 * a12 - b11 * a02)
-            ratio = det_b / (2 * max(p, 1e-150) ** 3)
+            ratio = det_b / (2 * p ** 3) if p > 1e-100 else 0.0  # no spread (repeated points): all equal
             phi = math.acos(min(max(ratio, -1.0), 1.0)) / 3
             largest, smallest = q + 2 * p * math.cos(phi), q + 2 * p * math.cos(phi + third)
             evals = (smallest, 3 * q - smallest - largest, largest)

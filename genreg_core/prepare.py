@@ -123,6 +123,58 @@ def subsample(points: np.ndarray, n: int, rng: np.random.Generator, ordered: boo
     return points[sample_indices(len(points), n, rng, ordered)].astype(np.float64)
 
 
+# Row hashing of `repeated_rows`: three odd 64-bit multipliers (a multiplicative hash of each coordinate's bits)
+_ROW_HASH = np.array([0x9E3779B97F4A7C15, 0xC2B2AE3D27D4EB4F, 0x165667B19E3779F9], dtype=np.uint64)
+
+
+def repeated_rows(points: np.ndarray) -> np.ndarray:
+    """Which rows of a float64 (n, 3) array repeat an earlier-sorted row exactly (-0.0 equals 0.0): one
+    sort of a 64-bit hash per row, the rows compared where the hashes agree."""
+    x = np.ascontiguousarray(points, dtype=np.float64) + 0.0  # + 0.0: -0.0 becomes 0.0
+    with np.errstate(over="ignore"):
+        key = (x.view(np.uint64) * _ROW_HASH).sum(axis=1, dtype=np.uint64)  # wraps: a hash
+    order = np.argsort(key, kind="stable")
+    repeated = np.zeros(len(x), dtype=bool)
+    same = key[order[1:]] == key[order[:-1]]
+    if same.any():
+        later, earlier = order[1:][same], order[:-1][same]
+        repeated[later[(x[later] == x[earlier]).all(axis=1)]] = True
+    return repeated
+
+
+def distinct_points(points: np.ndarray) -> np.ndarray:
+    """The distinct rows of an (N, 3) array as float64, in input order."""
+    rows = points.astype(np.float64)
+    return rows[~repeated_rows(rows)]
+
+
+def distinct_subsample(points: np.ndarray, n: int, rng: np.random.Generator, ordered: bool = False,
+                       repeat: bool = True, rounds: int = 4) -> np.ndarray:
+    """`subsample` without repeated points: drawn rows that repeat another drawn point (a LiDAR's dual
+    returns, a float32 cloud quantised far from the origin) are replaced by fresh draws, for a few rounds;
+    a cloud with too few distinct points for that is subsampled from its distinct points, with repeats
+    only if it has fewer than n (none if not `repeat`: then all of them once). Identical to `subsample`
+    when no drawn point repeats another. Repeated points would give the network zero-length edges and
+    spread-free neighbourhoods, and the scores a zero spacing."""
+    if len(points) <= n and not repeat:
+        return distinct_points(points)
+    rows = subsample(points, n, rng, ordered)
+    if len(points) < n:  # every row once plus repeats: repeats of distinct points are as `subsample`
+        return rows if not repeated_rows(points.astype(np.float64)).any() else \
+            subsample(distinct_points(points), n, rng, ordered)
+    repeated = repeated_rows(rows)
+    for _ in range(rounds):
+        if not repeated.any():
+            return rows
+        fresh = points[rng.integers(0, len(points), int(repeated.sum()))].astype(np.float64)
+        rows = np.concatenate([rows[~repeated], fresh])
+        repeated = repeated_rows(rows)
+    if not repeated.any():
+        return rows
+    distinct = distinct_points(points)
+    return distinct if len(distinct) <= n and not repeat else subsample(distinct, n, rng, ordered)
+
+
 def robust_extent(points: np.ndarray) -> tuple[np.ndarray, float]:
     """(lower corner, edge) of the cube the points fill, ignoring the floor(`ROBUST_QUANTILE` n) outermost
     points on each side of each axis (none below 1000 points: the bounding box): the normalisation offset
@@ -236,20 +288,30 @@ def prepare_pair(
     rng = np.random.default_rng(seed)
 
     def subset(points: np.ndarray, n: int, dense: bool = False) -> np.ndarray:
-        """n rows as float64. `dense` (the ICP and fitness sets, whose order is immaterial): every row if
-        there are few enough, else the draw in input order (gathered in memory order)."""
-        if dense and len(points) <= n:
-            return points.astype(np.float64)
-        return subsample(points, n, rng, ordered=dense)
+        """n rows as float64, distinct points where there are enough (`distinct_subsample`). `dense` (the
+        ICP and fitness sets, whose order is immaterial): every distinct point if there are few enough
+        (never a repeat), else the draw in input order (gathered in memory order)."""
+        return distinct_subsample(points, n, rng, ordered=dense, repeat=not dense)
 
     a, b = subset(src, num_points), subset(tgt, num_points)
     dense_src, dense_tgt = subset(src, refine_points, dense=True), subset(tgt, refine_points, dense=True)
+    for name, dense in (("source", dense_src), ("target", dense_tgt)):
+        if len(dense) < min_points:
+            raise TooFewPointsError(f"{name} has {len(dense)} distinct finite points; registration needs at least "
+                                    f"{min_points}")
     if init is not None:
         a, dense_src = apply_transform(init, a), apply_transform(init, dense_src)
     offset, scale = robust_extent(dense_src)  # one similarity for both clouds
+    if not np.isfinite(scale):
+        raise InvalidPointCloudError(f"source extent overflows float64 ({scale}): coordinates too large")
 
     def normalized(points: np.ndarray) -> np.ndarray:
-        return ((points - offset) / scale).astype(np.float32)
+        with np.errstate(over="ignore"):
+            moved = ((points - offset) / scale).astype(np.float32)
+        if not np.isfinite(moved.sum(dtype=np.float64)):
+            raise InvalidPointCloudError("the target lies beyond float32 range in the source's frame (source extent "
+                                         f"{scale:.3g}): are both clouds in the same units?")
+        return moved
 
     target = normalized(dense_tgt)
     target.setflags(write=False)  # immutable: `target_index` indexes it once for the pair

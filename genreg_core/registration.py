@@ -13,7 +13,8 @@ Stages of `register_many` (`register` is one pair of it):
     6. refine    `refine.refine` (ICP); with an initial guess, refinement from the guess competes with
                  GenReg's start (fitness decides); without one, the guard `refine.guard_icp`; opt-in, the
                  classical `fallback.fallback` (FPFH + RANSAC) when the confidence stays low
-    7. score     `score`: fitness, inlier ratio, confidence, covariance; the transform in input units
+    7. score     `score`: fitness, inlier ratio, confidence, covariance, unconstrained motions; the transform
+                 in input units
 Conventions (frames, units, T_target_source): `genreg_core.geometry`. `transformation` is the input's
 target_from_source; internally everything runs in the prepared pair's normalised frame.
 """
@@ -45,6 +46,7 @@ from genreg_core.score import (
     fitness_distance,
     overlap_fitness,
     pose_covariance,
+    unconstrained_directions,
 )
 
 # With an initial guess, another pose replaces it only when its fitness (share of source points overlapping
@@ -83,11 +85,19 @@ class RegistrationResult:
     tight_fitness: float  # the same share within 1x the target's spacing
     inlier_ratio: float  # fraction of generated correspondences (both directions) consistent with T
     inlier_rmse: float  # RMS distance of the fitness inliers, input units
-    confidence: float  # in [0, 1]: geometric mean of fitness, tight_fitness and inlier_ratio (score.confidence)
+    confidence: float  # in [0, 1]: geometric mean of fitness, tight_fitness and inlier_ratio (score.confidence),
+    # lowered where the geometry leaves a motion unconstrained (score.unconstrained_directions)
     start: str = "genreg"  # what the final pose grew from: "genreg", "initial_guess" (the guess, or the
     # guard's ICP from identity without a guess, overlapped the target better) or "fallback" (FPFH + RANSAC)
     covariance: np.ndarray | None = None  # (6, 6) of the final pose, ROS order (x, y, z, rot x, y, z), m, rad
     timings: dict[str, float] = field(default_factory=dict)  # seconds per stage and 'total'
+    unconstrained: tuple[str, ...] = ()  # motions the aligned geometry does not constrain, target frame, e.g.
+    # "rotation about (0.00, 0.00, 1.00)" (score.unconstrained_directions); empty: fully constrained
+
+    @property
+    def degenerate(self) -> bool:
+        """Whether the geometry leaves some motion unconstrained (`unconstrained` is not empty)."""
+        return bool(self.unconstrained)
 
 
 @dataclass
@@ -241,9 +251,11 @@ class Registrar:
         t1 = time.perf_counter()
         T = p.to_input_units(T_n)
         origin_n = (T[:3, 3] - p.offset) / p.scale  # the pose's position, normalised frame
-        covariance = pose_covariance(apply_transform(T_n, p.dense_src.astype(np.float64)), p.target_index, origin_n,
-                                     distance, COVARIANCE_INFLATION, (COVARIANCE_FLOOR_M, COVARIANCE_FLOOR_RAD),
+        moved = apply_transform(T_n, p.dense_src.astype(np.float64))
+        covariance = pose_covariance(moved, p.target_index, origin_n, distance, COVARIANCE_INFLATION,
+                                     (COVARIANCE_FLOOR_M, COVARIANCE_FLOOR_RAD),
                                      scale=p.scale)  # in the normalised frame (the fitness' index), metric
+        unconstrained, constrained = unconstrained_directions(moved, p.target_index, distance)
         a_gen = p.points_to_input_units(est.source_generated[k].double().cpu().numpy())
         b_gen = p.points_to_input_units(est.target_generated[k].double().cpu().numpy())
         aligned = p.aligned_source(T)  # float32, one product
@@ -258,9 +270,10 @@ class Registrar:
             tight_fitness=tight_fitness,
             inlier_ratio=inlier_ratio,
             inlier_rmse=rmse_n * p.scale,
-            confidence=confidence(fitness, tight_fitness, inlier_ratio),
+            confidence=confidence(fitness, tight_fitness, inlier_ratio) * constrained,
             start=start,
             covariance=covariance,
+            unconstrained=unconstrained,
             timings={"preprocess": p.seconds, "network": shared["network"], "pdsac": shared["pdsac"],
                      "refine": t1 - t0, "postprocess": t2 - t1,
                      "total": p.seconds + shared["network"] + shared["pdsac"] + t2 - t0},

@@ -35,6 +35,11 @@ COVARIANCE_INFLATION = 48.5
 COVARIANCE_ROWS = 1000
 COVARIANCE_FLOOR_M = 0.0029
 COVARIANCE_FLOOR_RAD = 0.0020
+# unconstrained_directions: a motion whose normalised point-to-plane Hessian eigenvalue is below this share
+# of the largest is unconstrained by the geometry. Measured at the true pose: redkitchen training pairs
+# 0.037-0.21, ModelNet40 training objects median 0.09 (rotationally symmetric ones from 0.001), a corridor
+# 0.0014, a sphere 0.0003, a plane 0.0001, a line below 0.0001 (MODEL_CARD "degeneracy")
+DEGENERACY_RATIO = 0.005
 
 
 class TargetIndex:
@@ -134,6 +139,69 @@ def confidence(fitness: float, tight_fitness: float, inlier_ratio: float) -> flo
     return float(np.cbrt(fitness * tight_fitness * inlier_ratio))
 
 
+def plane_residuals(moved: np.ndarray, target: np.ndarray | TargetIndex, max_distance: float,
+                    max_rows: int | None = COVARIANCE_ROWS) -> tuple[np.ndarray, np.ndarray, np.ndarray, float] | None:
+    """The point-to-plane correspondences of aligned clouds: each moved source point x_i with its nearest
+    target point q_i within `max_distance` and the target normal n_i there. Returns (x, n, x - q, weight),
+    or None when fewer than 12 are found. With more than `max_rows` correspondences (None: no limit),
+    `max_rows` of them spread evenly over the found ones (the source rows are a random sample) and
+    `weight` = found / max_rows, so that sums over them times `weight` estimate sums over all."""
+    index = TargetIndex.of(target)
+    rows, squared = index.nearest(moved)
+    found = np.flatnonzero(squared <= max_distance * max_distance)
+    if len(found) < 12:
+        return None
+    weight = 1.0
+    if max_rows is not None and len(found) > max_rows:
+        weight = len(found) / max_rows
+        found = found[np.linspace(0, len(found) - 1, max_rows).astype(np.int64)]
+    rows = rows[found]
+    x = moved[found]
+    return x, index.normals(rows), x - index.points[rows], weight
+
+
+def plane_jacobian(x: np.ndarray, normals: np.ndarray, origin: np.ndarray, scale: float = 1.0) -> np.ndarray:
+    """(n, 6) derivatives of the point-to-plane residuals n_i . (x_i - q_i) (times `scale`) by a pose
+    perturbation in the parent frame, R' = exp(dtheta) R, t' = t + dt, with rotations about `origin`:
+    (n_i, (x_i - origin) x n_i) in (dt, dtheta) order (ROS: x, y, z, rotation about x, y, z)."""
+    return np.concatenate([normals, scale * np.cross(x - origin, normals)], axis=1)
+
+
+def unconstrained_directions(moved: np.ndarray, target: np.ndarray | TargetIndex, max_distance: float,
+                             limit: float = DEGENERACY_RATIO) -> tuple[tuple[str, ...], float]:
+    """The motions that the aligned clouds' geometry does not constrain, and how well the worst is.
+
+    The point-to-plane Hessian J^T J (`plane_jacobian`) about the correspondences' centroid, rotations in
+    radians times the correspondences' RMS radius (so both blocks are in lengths), normalised by its
+    largest eigenvalue: eigenvalues below `limit` are unconstrained directions (a plane leaves its two
+    in-plane translations and the rotation about its normal free; a line the translation along it and the
+    rotation about it), each described as "translation along (x, y, z)" or "rotation about (x, y, z)"
+    (unit vectors in the clouds' frame; the larger of the eigenvector's two parts). Returns those texts
+    and min(1, smallest ratio / `limit`): 1 for well-constrained geometry, towards 0 as it degenerates.
+    Clouds with too few correspondences for a Hessian give ((), 1.0): nothing to judge."""
+    found = plane_residuals(moved, target, max_distance)
+    if found is None:
+        return (), 1.0
+    x, normals, _, _ = found
+    centre = x.mean(axis=0)
+    radius = float(np.sqrt(((x - centre) ** 2).sum(axis=1).mean())) or 1.0
+    J = plane_jacobian(x, normals, centre, 1.0 / radius)
+    values, vectors = np.linalg.eigh(J.T @ J)
+    top = values[-1]
+    if not top > 0:
+        return ("translation along any axis", "rotation about any axis"), 0.0
+    ratios = np.clip(values / top, 0.0, 1.0)
+    texts = []
+    for ratio, v in zip(ratios, vectors.T, strict=True):
+        if ratio < limit:
+            part, kind = (v[:3], "translation along") if np.linalg.norm(v[:3]) >= np.linalg.norm(v[3:]) \
+                else (v[3:], "rotation about")
+            u = part / np.linalg.norm(part)
+            u = u if u[np.argmax(np.abs(u))] > 0 else -u  # one sign for a line of directions
+            texts.append(f"{kind} ({u[0]:.2f}, {u[1]:.2f}, {u[2]:.2f})")
+    return tuple(texts), float(min(1.0, ratios[0] / limit))
+
+
 def pose_covariance(moved: np.ndarray, target: np.ndarray | TargetIndex, origin: np.ndarray, max_distance: float,
                     inflation: float = 1.0, floor: tuple[float, float] = (0.0, 0.0), scale: float = 1.0,
                     max_rows: int | None = COVARIANCE_ROWS) -> np.ndarray | None:
@@ -152,20 +220,12 @@ def pose_covariance(moved: np.ndarray, target: np.ndarray | TargetIndex, origin:
     of them spread evenly over the found ones (the source rows are a random sample), J^T J scaled by
     n / max_rows: an unbiased estimate of the full sum, at a fraction of the normals' cost.
     """
-    index = TargetIndex.of(target)
-    rows, squared = index.nearest(moved)
-    found = np.flatnonzero(squared <= max_distance * max_distance)
-    if len(found) < 12:
+    found = plane_residuals(moved, target, max_distance, max_rows)
+    if found is None:
         return None
-    weight = 1.0
-    if max_rows is not None and len(found) > max_rows:
-        weight = len(found) / max_rows
-        found = found[np.linspace(0, len(found) - 1, max_rows).astype(np.int64)]
-    rows = rows[found]
-    normals = index.normals(rows)
-    x = moved[found]
-    r = scale * np.einsum("ij,ij->i", normals, x - index.points[rows])
-    J = np.concatenate([normals, scale * np.cross(x - origin, normals)], axis=1)
+    x, normals, d, weight = found
+    r = scale * np.einsum("ij,ij->i", normals, d)
+    J = plane_jacobian(x, normals, origin, scale)
     H = weight * (J.T @ J)
     if np.linalg.cond(H) > 1e12:
         return None

@@ -44,7 +44,8 @@ def smallest_eigenpair3(cov: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     b00, b11, b22 = a00 - q, a11 - q, a22 - q  # B = cov - q I
     p = ((b00.square() + b11.square() + b22.square() + 2 * (a01.square() + a02.square() + a12.square())) / 6).sqrt()
     det_b = b00 * (b11 * b22 - a12 * a12) - a01 * (a01 * b22 - a12 * a02) + a02 * (a01 * a12 - b11 * a02)
-    phi = torch.acos((det_b / (2 * p.clamp_min(1e-150) ** 3)).clamp(-1.0, 1.0)) / 3
+    spread = p > 1e-100  # without spread (repeated points) the eigenvalues are equal: ratio 0, normal 0
+    phi = torch.acos(torch.where(spread, det_b / (2 * p.clamp_min(1e-100) ** 3), 0.0).clamp(-1.0, 1.0)) / 3
     largest, smallest = q + 2 * p * torch.cos(phi), q + 2 * p * torch.cos(phi + 2 * math.pi / 3)
     evals = torch.stack([smallest, 3 * q - smallest - largest, largest], dim=-1)
     rows = c - smallest[..., None, None] * torch.eye(3, dtype=c.dtype, device=c.device)
