@@ -9,6 +9,8 @@ from __future__ import annotations
 
 import dataclasses
 import os
+import pickle
+import zipfile
 from pathlib import Path
 from typing import Any
 
@@ -28,10 +30,27 @@ def resolve_checkpoint(name_or_path: str | os.PathLike) -> Path:
     path = Path(text).expanduser()
     if not path.suffix and os.sep not in text:
         path = WEIGHTS_DIR / f"{text}.pt"
+    if path.is_dir():
+        raise CheckpointError(f"checkpoint {path} is a directory, not a checkpoint file")
     if not path.is_file():
         shipped = sorted(p.stem for p in WEIGHTS_DIR.glob("*.pt"))
         raise CheckpointError(f"checkpoint not found: {path} (shipped models: {shipped or 'none'})")
     return path
+
+
+def _unreadable(path: Path, exc: Exception) -> str:
+    """One line on why torch could not read a checkpoint file, without torch's advice to unpickle it
+    unsafely (`weights_only=False` would run whatever code the file holds)."""
+    if path.stat().st_size == 0:
+        return f"checkpoint {path} is empty (0 bytes)"
+    text = str(exc)
+    if isinstance(exc, pickle.UnpicklingError) or "weights_only" in text:
+        return (f"checkpoint {path} holds objects other than tensors and plain values; refused, since loading "
+                "them could run code (a genreg checkpoint holds only weights and settings)")
+    if not zipfile.is_zipfile(path):  # torch writes zip archives; a cut-off one loses its directory at the end
+        return f"checkpoint {path} is truncated or not a torch checkpoint ({path.stat().st_size} bytes)"
+    first = (text.strip().splitlines() or [type(exc).__name__])[0]
+    return f"checkpoint {path} is corrupt or not a genreg checkpoint: {first}"
 
 
 def save_checkpoint(
@@ -56,7 +75,7 @@ def load_checkpoint(
     try:
         blob = torch.load(path, map_location="cpu", weights_only=True)
     except Exception as exc:  # noqa: BLE001 - pickle, zip and unpickler errors all mean: unusable
-        raise CheckpointError(f"checkpoint {path} is corrupt or not a genreg checkpoint: {exc}") from None
+        raise CheckpointError(_unreadable(path, exc)) from None
     if not isinstance(blob, dict) or blob.get("format") != FORMAT:
         raise CheckpointError(f"checkpoint {path} is not in format {FORMAT}")
     try:
