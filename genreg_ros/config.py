@@ -85,11 +85,10 @@ class SyncParams:
 
     mode: str = setting("approximate", "approximate: pair by stamp within slop; latest_target: each source "
                         "against the newest target.", choices=MODES)
-    slop: float = setting(0.05, "Largest stamp difference of a pair, s.", low=0.0, high=10.0)
+    slop: float = setting(0.05, "Largest stamp difference of a pair, s. A stamp more than this older than the "
+                          "newest of its topic (bag loop, simulator reset) resets pairing, tracking and topic "
+                          "guesses.", low=0.0, high=10.0)
     queue_size: int = setting(5, "Unpaired messages kept per topic.", low=1, high=100)
-    time_jump: float = setting(1.0, "A stamp this much older than the newest of its topic (bag loop, simulator "
-                               "reset) resets pairing, tracking and topic guesses, s; 0: off.", low=0.0,
-                               high=1e6)
 
     def __post_init__(self) -> None:
         check_ranges(self, "sync.")
@@ -133,7 +132,7 @@ class NodeConfig:
                               "lifecycle transitions (<node>/change_state).", start_up=True)
     model: ModelParams = setting(ModelParams(), "The network.")
     workers: int = setting(1, "Pairs registered at once, each in its own worker process with its own copy of "
-                           "the model (about 0.4 GB each); 1: in the node's process. Processes, not threads: "
+                           "the model (7scenes: 0.65-0.75 GB resident each, the node 0.8 GB); 1: in the node's process. Processes, not threads: "
                            "small_gicp and Open3D hold Python's interpreter lock. More than the CPU cores "
                            "do not help.", low=1, high=64, start_up=True)
     pdsac: PDSACConfig = setting(PDSACConfig(), "PDSAC (the core's defaults).")
@@ -164,8 +163,8 @@ class NodeConfig:
     use_last_result_as_guess: bool = setting(False, "Start each registration from the previous result (tracking).")
     min_fitness: float = setting(0.0, "Results with lower fitness are counted as failed and not published.",
                                  low=0.0, high=1.0)
-    # chosen on redkitchen training pairs by scripts/calibrate_min_confidence.py (GICP, the scene model of issue
-    # 13): the largest multiple of 0.05 at least 0.05 below the lowest confidence of a success (MODEL_CARD.md)
+    # chosen on redkitchen training pairs by scripts/calibrate_min_confidence.py (GICP, the scene model
+    # 7scenes): the largest multiple of 0.05 at least 0.05 below the lowest confidence of a success (MODEL_CARD.md)
     min_confidence: float = setting(0.10, "Results with lower confidence are not published (counted as "
                                     "failed.low_confidence_rejected).", low=0.0, high=1.0)
     warn_confidence: float = setting(0.3, "Results with lower confidence are published, with a throttled "
@@ -218,7 +217,7 @@ CONFIG_DIR = Path(__file__).resolve().parent.parent / "config"
 # The shipped params files: name -> (what it is for, the settings that differ from NodeConfig's defaults).
 # Scenes: the scene model, small_gicp's GICP (best of the refinements on real pairs, MODEL_CARD.md), the
 # scene PDSAC settings (genreg_core.config.SCENE_PDSAC); two workers: a 30 Hz depth camera's full-resolution
-# pairs need both cores (issue 15, scripts/bench_node.py soak)
+# pairs need both cores (scripts/bench_node.py soak)
 SCENE_OVERRIDES = {"model.checkpoint": SCENE_MODEL, "refine.method": "gicp", "pdsac.sample_size": SCENE_PDSAC.sample_size,
                    "workers": 2}
 PROFILES: dict[str, tuple[str, dict[str, Any]]] = {

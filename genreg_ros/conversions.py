@@ -21,6 +21,17 @@ def stamp_ns(header: Any) -> int:
     return int(header.stamp.sec) * NS_PER_S + int(header.stamp.nanosec)
 
 
+def stamp_error(header: Any) -> str:
+    """Why a header's stamp is not a valid time ("" if it is): a negative sec (a uint32-sized sec above
+    2**31 arrives as negative) or a nanosec of 1e9 or more."""
+    sec, nanosec = int(header.stamp.sec), int(header.stamp.nanosec)
+    if sec < 0:
+        return f"stamp sec {sec} is negative"
+    if not 0 <= nanosec < NS_PER_S:
+        return f"stamp nanosec {nanosec} is not in [0, 1e9)"
+    return ""
+
+
 def split_ns(ns: int) -> tuple[int, int]:
     """(sec, nanosec) of a stamp in integer nanoseconds."""
     return divmod(int(ns), NS_PER_S)

@@ -26,6 +26,7 @@ class Stats:
         self.lock = threading.Lock()
         self.start = time.monotonic()
         self.received: Counter[str] = Counter()
+        self.lost: Counter[str] = Counter()  # topic -> messages the middleware reported lost
         self.dropped: Counter[str] = Counter()
         self.failed: Counter[str] = Counter()
         self.events: Counter[str] = Counter()  # time_jump, reset
@@ -44,6 +45,10 @@ class Stats:
         with self.lock:
             self.received[topic] += 1
             self.last_arrival[topic] = now
+
+    def lost_messages(self, topic: str, count: int) -> None:
+        with self.lock:
+            self.lost[topic] += count
 
     def event(self, name: str) -> None:
         with self.lock:
@@ -76,7 +81,7 @@ class Stats:
         with self.lock:
             return Snapshot(
                 Counter(self.received), Counter(self.dropped), Counter(self.failed), Counter(self.events),
-                self.registered,
+                Counter(self.lost), self.registered,
                 self.low_confidence, self.paired, dict(self.last_arrival), list(self.latency),
                 list(self.overhead), list(self.callback), dict(self.last), self.last_outcome, self.start)
 
@@ -89,6 +94,7 @@ class Snapshot:
     dropped: Counter
     failed: Counter
     events: Counter
+    lost: Counter
     registered: int
     low_confidence: int
     paired: int
@@ -137,6 +143,8 @@ def build_status(s: Snapshot, now: float, name: str, hardware_id: str, stale_tim
                      f"warn_confidence {warn_confidence})")
     dropped, failed = sum(s.dropped.values()), sum(s.failed.values())
     summary = f"registered {s.registered}, dropped {dropped}, failed {failed}"
+    if lost := sum(s.lost.values()):
+        summary += f", lost {lost} (by the middleware)"
     kv = {
         "state": state,
         "registered": s.registered,
@@ -145,6 +153,8 @@ def build_status(s: Snapshot, now: float, name: str, hardware_id: str, stale_tim
         "failed": failed,
         "received.source": s.received[SOURCE],
         "received.target": s.received[TARGET],
+        "lost.source": s.lost[SOURCE],  # lost by the middleware (QoS event message_lost): never received
+        "lost.target": s.lost[TARGET],
         "paired": s.paired,
         "time_jump": s.events["time_jump"],
         "reset": s.events["reset"],

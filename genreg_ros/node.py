@@ -30,8 +30,9 @@ thread decodes and registers, a publisher thread encodes and publishes. With `wo
 worker thread per worker process (`genreg_ros.workers`: the registration itself runs there) and results
 are published in the order their pairs were taken. A newer pair replaces an older waiting one, so latency
 stays one registration at most and memory is bounded by the sync queues. Bad input is a throttled warning plus a
-counted drop; the node carries on. A stamp more than `sync.time_jump` s older than its topic's newest
-(bag loop, simulator reset) resets pairing, tracking and topic guesses.
+counted drop; the node carries on. A stamp more than `sync.slop` older than its topic's newest (bag
+loop, simulator reset) resets pairing, tracking and topic guesses, as tf2 clears its buffer on a jump back.
+Messages the middleware reports lost (QoS event message_lost) are counted per topic.
 
 Parameters: `genreg_ros.config` (the settings) and `genreg_ros.params` (their declaration and checks);
 counters and /diagnostics: `genreg_ros.diagnostics`; messages: `genreg_ros.pointcloud2`, `.conversions`.
@@ -52,6 +53,7 @@ import rclpy
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from geometry_msgs.msg import PoseWithCovarianceStamped, TransformStamped
 from rclpy.clock import Clock, ClockType
+from rclpy.event_handler import SubscriptionEventCallbacks, UnsupportedEventTypeError
 from rclpy.executors import ExternalShutdownException
 from rclpy.lifecycle import LifecycleNode, LifecycleState, TransitionCallbackReturn
 from rclpy.parameter import Parameter
@@ -62,12 +64,12 @@ from sensor_msgs.msg import PointCloud2
 from std_msgs.msg import Header
 from std_srvs.srv import Trigger
 
-from genreg_core.errors import GenRegError
+from genreg_core.errors import GenRegError, TooFewPointsError
 from genreg_core.memory import retain_freed_memory
 from genreg_core.preprocess import PreprocessConfig, preprocess
 from genreg_ros import params
 from genreg_ros.config import NodeConfig
-from genreg_ros.conversions import matrix_to_msg, matrix_to_pose_msg, msg_to_matrix, stamp_ns
+from genreg_ros.conversions import matrix_to_msg, matrix_to_pose_msg, msg_to_matrix, stamp_error, stamp_ns
 from genreg_ros.diagnostics import Stats, build_status
 from genreg_ros.pointcloud2 import (
     PointCloud2Error,
@@ -148,6 +150,75 @@ def _snake(name: str) -> str:
     return re.sub(r"(?<!^)(?=[A-Z])", "_", name.removesuffix("Error")).lower()
 
 
+def failure_reason(exc: GenRegError) -> str:
+    """The `failed.<reason>` of a registration error: too_few_points for every TooFewPointsError (its subclass
+    NonFinitePointsError included), else the exception's class name in snake case (CheckpointError: checkpoint)."""
+    return "too_few_points" if isinstance(exc, TooFewPointsError) else _snake(type(exc).__name__)
+
+
+_HEADER_BYTES = 65536  # target_file: a PLY or PCD header must end within this many bytes
+_PLY_FORMATS = ("ascii", "binary_little_endian", "binary_big_endian")
+_PCD_DATA = ("ascii", "binary", "binary_compressed")
+
+
+def _cloud_file_problem(suffix: str, head: bytes) -> str:
+    """Why `head` (a file's first bytes) is no PLY / PCD point cloud header ("" if it is one). Names what is
+    wrong, never quotes the file."""
+    if suffix not in (".ply", ".pcd"):
+        return f"a .ply or .pcd file is expected, not {suffix or 'no extension'}"
+    text = head.decode("latin-1")
+    end = "end_header" if suffix == ".ply" else "\nDATA "
+    if end not in text:
+        return f"no complete {suffix[1:].upper()} header in its first {_HEADER_BYTES} bytes"
+    lines = [ln.split() for ln in text.split(end)[0].splitlines()]
+    if suffix == ".ply":
+        if not lines or lines[0] != ["ply"]:
+            return "not a PLY file (its first line is not 'ply')"
+        fmt = [ln for ln in lines if ln[:1] == ["format"]]
+        if len(fmt) != 1 or len(fmt[0]) != 3 or fmt[0][1] not in _PLY_FORMATS:
+            return f"PLY header without a valid format line ({', '.join(_PLY_FORMATS)})"
+        vertex = [ln for ln in lines if ln[:2] == ["element", "vertex"]]
+        props = {ln[-1] for ln in lines if ln[:1] == ["property"]}
+        if not vertex or not {"x", "y", "z"} <= props:
+            return "PLY header without a vertex element with x, y, z properties"
+        return ""
+    fields = next((ln[1:] for ln in lines if ln[:1] == ["FIELDS"]), [])
+    data = text.split(end, 1)[1].split(maxsplit=1)[:1]
+    if not {"x", "y", "z"} <= set(fields):
+        return "PCD header without x, y, z fields"
+    if data and data[0] not in _PCD_DATA:
+        return f"PCD header with an unknown DATA type (one of {', '.join(_PCD_DATA)} is expected)"
+    return ""
+
+
+def _read_cloud_quietly(path: Path) -> tuple[np.ndarray, bool]:
+    """(points, whether the readers printed anything) of a PLY/PCD file read by Open3D with its output and
+    RPly's (written straight to stderr) captured and discarded."""
+    import ctypes
+    import os
+    import tempfile
+
+    import open3d as o3d
+
+    sys.stderr.flush()
+    sys.stdout.flush()
+    saved = os.dup(2), os.dup(1)
+    with tempfile.TemporaryFile() as sink:
+        try:
+            os.dup2(sink.fileno(), 2)
+            os.dup2(sink.fileno(), 1)
+            with o3d.utility.VerbosityContextManager(o3d.utility.VerbosityLevel.Warning):
+                points = np.asarray(o3d.io.read_point_cloud(str(path)).points, dtype=np.float64)
+        finally:
+            ctypes.CDLL(None).fflush(None)  # C stdio buffers into the sink, not after it is gone
+            os.dup2(saved[0], 2)
+            os.dup2(saved[1], 1)
+            os.close(saved[0])
+            os.close(saved[1])
+        printed = sink.seek(0, os.SEEK_END) > 0
+    return points, printed
+
+
 class RegisterNode(LifecycleNode):
     """The GenReg registration node. Construct inside an rclpy context; call `close()` before destroying.
 
@@ -168,7 +239,7 @@ class RegisterNode(LifecycleNode):
         self._warned: dict[str, float] = {}
         self._stale: set[str] = set()
         self._matched_since: dict[str, float | None] = {SOURCE: None, TARGET: None}
-        self._silent_warned: set[str] = set()
+        self._silent_warned: dict[str, float | None] = {}  # topic -> its last arrival when it was warned about
         self._registrars: list[Any] = []  # one per worker: the core's Registrar, or RemoteRegistrars
         self._tf_broadcaster = None
         self._fixed: _FixedTarget | None = None
@@ -264,11 +335,9 @@ class RegisterNode(LifecycleNode):
         target_qos = QoSProfile(depth=c.qos.depth, reliability=reliability,
                                 durability=DurabilityPolicy[c.qos.target_durability.upper()])
         # clouds arrive serialised (raw=True) and are deserialised by `from_cdr`: 20x faster than rclpy's own
-        self._subs[SOURCE] = self.create_subscription(
-            PointCloud2, "source_cloud", lambda m: self._on_cloud(SOURCE, m), sub_qos, raw=True)
+        self._subs[SOURCE] = self._cloud_subscription(SOURCE, sub_qos)
         if self._fixed is None:
-            self._subs[TARGET] = self.create_subscription(
-                PointCloud2, "target_cloud", lambda m: self._on_cloud(TARGET, m), target_qos, raw=True)
+            self._subs[TARGET] = self._cloud_subscription(TARGET, target_qos)
         self._subs["guess"] = self.create_subscription(TransformStamped, "initial_guess", self._on_guess, 1)
         self._subs["initialpose"] = self.create_subscription(
             PoseWithCovarianceStamped, "initialpose", self._on_initialpose, 1)
@@ -285,6 +354,17 @@ class RegisterNode(LifecycleNode):
             f"sync {self._sync.mode} slop {c.sync.slop} s, subscription QoS {c.qos.reliability}; "
             f"listening on {self._subs[SOURCE].topic_name}, target {target}")
         return super().on_activate(state)
+
+    def _cloud_subscription(self, topic: str, qos: QoSProfile):
+        """The `<topic>_cloud` subscription (serialised messages), counting the messages the middleware
+        reports lost; without that event (an rmw that lacks it) the subscription alone."""
+        args = (PointCloud2, f"{topic}_cloud", lambda m: self._on_cloud(topic, m), qos)
+        events = SubscriptionEventCallbacks(message_lost=lambda info: self._on_message_lost(topic, info))
+        try:
+            return self.create_subscription(*args, raw=True, event_callbacks=events)
+        except UnsupportedEventTypeError:
+            self.get_logger().info(f"the middleware does not report lost messages: {topic} losses are not counted")
+            return self.create_subscription(*args, raw=True)
 
     def on_deactivate(self, state: LifecycleState) -> TransitionCallbackReturn:
         self._unsubscribe()
@@ -365,15 +445,27 @@ class RegisterNode(LifecycleNode):
 
     @staticmethod
     def _load_target_file(c: NodeConfig) -> _FixedTarget:
-        import open3d as o3d
-
+        """The target_file cloud. Its header is checked here and Open3D reads it with its messages (and
+        RPly's, which can quote the file) silenced, so no file content reaches the log; StartupError with a
+        one-line message for anything unreadable."""
         path = Path(c.target_file).expanduser()
-        if not path.is_file():
+        if path.is_dir():
+            raise StartupError(f"target_file {path} is a directory (a PLY or PCD file is expected)")
+        if not path.exists():
             raise StartupError(f"target_file not found: {path}")
-        points = np.asarray(o3d.io.read_point_cloud(str(path)).points, dtype=np.float64)
+        try:
+            with path.open("rb") as f:
+                head = f.read(_HEADER_BYTES)
+        except OSError as exc:
+            raise StartupError(f"target_file {path} cannot be read: {exc.strerror or type(exc).__name__}") from None
+        problem = _cloud_file_problem(path.suffix.lower(), head)
+        if problem:
+            raise StartupError(f"target_file {path}: {problem}")
+        points, printed = _read_cloud_quietly(path)
         points = points[np.isfinite(points).all(axis=1)]
-        if len(points) == 0:
-            raise StartupError(f"target_file {path}: no points read (a PLY or PCD cloud is expected)")
+        if printed or len(points) == 0:
+            raise StartupError(f"target_file {path}: {'malformed or truncated' if printed else 'no points read'} "
+                               f"({path.suffix[1:].upper()} cloud)")
         return _FixedTarget(points, c.target_frame, time.monotonic())
 
     # ----------------------------------------------------------------- parameters and state
@@ -425,6 +517,10 @@ class RegisterNode(LifecycleNode):
                 except PointCloud2Error as exc:
                     self._drop(exc.reason, f"{topic} cloud: {exc}")
                     return
+            bad_stamp = stamp_error(msg.header)
+            if bad_stamp:
+                self._drop("bad_stamp", f"{topic} cloud: {bad_stamp}")
+                return
             frame = getattr(c, f"{topic}_frame") or msg.header.frame_id
             if not frame:
                 self._drop("empty_frame_id", f"{topic} cloud has an empty header.frame_id and {topic}_frame is unset")
@@ -440,12 +536,11 @@ class RegisterNode(LifecycleNode):
                 return
             stamp = stamp_ns(msg.header)
             newest = self._newest[topic]
-            if c.sync.time_jump > 0 and newest is not None and newest - stamp > c.sync.time_jump * 1e9:
+            if newest is not None and newest - stamp > round(c.sync.slop * 1e9):  # as tf2: any jump back
                 self._reset_state(f"time jump on {topic}")
-                self.get_logger().warning(
-                    f"time jump: {topic} stamp {stamp / 1e9:.3f} s is {(newest - stamp) / 1e9:.3f} s older than "
-                    f"the newest seen ({newest / 1e9:.3f} s; bag loop or simulator reset?): pairing, tracking and "
-                    "topic guesses reset")
+                self._warn("time_jump", f"time jump: {topic} stamp {stamp / 1e9:.3f} s is {(newest - stamp) / 1e9:.3f} "
+                           f"s older than the newest seen ({newest / 1e9:.3f} s), more than sync.slop {c.sync.slop} s "
+                           "(bag loop or simulator reset?): pairing, tracking and topic guesses reset")
             with self._lock:
                 self._newest[topic] = stamp if self._newest[topic] is None else max(self._newest[topic], stamp)
                 add = self._sync.add_source if topic == SOURCE else self._sync.add_target
@@ -468,6 +563,13 @@ class RegisterNode(LifecycleNode):
 
     def _on_initialpose(self, msg: PoseWithCovarianceStamped) -> None:
         self._set_guess(msg.pose, msg.header.frame_id, None, "initialpose")
+
+    def _on_message_lost(self, topic: str, info: Any) -> None:
+        """The middleware's message_lost event (rmw_message_lost_status_t: total_count, total_count_change)."""
+        change = int(info.total_count_change)
+        self._stats.lost_messages(topic, change)
+        self._warn(f"lost_{topic}", f"{change} {topic} cloud(s) lost by the middleware ({int(info.total_count)} in "
+                   f"all): large best-effort clouds need config/fastdds_large_clouds.xml in every process; see {DOCS}")
 
     def _set_guess(self, msg: Any, parent: str, child: str | None, origin: str) -> None:
         try:
@@ -518,7 +620,7 @@ class RegisterNode(LifecycleNode):
         try:
             result = registrar.register(src_points, tgt_points, initial_guess=guess)
         except GenRegError as exc:
-            self._fail(_snake(type(exc).__name__), f"registration failed: {exc}")
+            self._fail(failure_reason(exc), f"registration failed: {exc}")
             return None
         t4 = time.perf_counter()
         T_target_source = result.transformation
@@ -590,16 +692,22 @@ class RegisterNode(LifecycleNode):
 
     def _result_status(self, result, header: Header, source_frame: str, guess_origin: str, latency: float,
                        rejected: str, low_confidence: bool) -> DiagnosticArray:
-        """The per-result `registration_status` message (header: the source stamp and the target frame)."""
-        level = DiagnosticStatus.ERROR if rejected else DiagnosticStatus.WARN if low_confidence else DiagnosticStatus.OK
+        """The per-result `registration_status` message (header: the source stamp and the target frame). A result
+        whose geometry leaves directions unconstrained (the core's `unconstrained`) is WARN and says `degenerate`."""
+        unconstrained = tuple(getattr(result, "unconstrained", ()) or ())
+        level = DiagnosticStatus.ERROR if rejected else DiagnosticStatus.WARN if low_confidence or unconstrained \
+            else DiagnosticStatus.OK
         message = f"rejected: {rejected}" if rejected else "published with low confidence" if low_confidence \
             else "published"
+        if unconstrained:
+            message = f"degenerate: {'; '.join(unconstrained)} (target frame); {message}"
         values = {
             "confidence": f"{result.confidence:.4f}", "fitness": f"{result.fitness:.4f}",
             "tight_fitness": f"{result.tight_fitness:.4f}", "inlier_ratio": f"{result.inlier_ratio:.4f}",
             "inlier_rmse_m": f"{result.inlier_rmse:.6f}",
             "start": result.start, "initial_guess": guess_origin, "published": str(not rejected).lower(),
             "source_frame": source_frame, "target_frame": header.frame_id, "latency_ms": f"{1e3 * latency:.1f}",
+            "degenerate": str(bool(unconstrained)).lower(), "unconstrained": "; ".join(unconstrained),
         }
         status = DiagnosticStatus(level=level, name=f"{self.get_name()}: result", message=message,
                                   hardware_id=self.get_fully_qualified_name(),
@@ -681,8 +789,8 @@ class RegisterNode(LifecycleNode):
     def _publish_diagnostics(self) -> None:
         c = self._config
         snap, now, state = self._stats.snapshot(), time.monotonic(), self.state
-        silent = self._silent_publishers(snap, now, c.diagnostics.stale_timeout) if state == "active" else []
         fixed = self._fixed is not None or (self._sync.mode == "latest_target" and snap.last_arrival[TARGET] is not None)
+        silent = self._silent_publishers(snap, now, c.diagnostics.stale_timeout, fixed) if state == "active" else []
         status, stale = build_status(snap, now, self.get_name(), self.get_fully_qualified_name(),
                                      c.diagnostics.stale_timeout, c.warn_confidence, state, fixed, silent)
         for topic, note in stale.items():
@@ -691,9 +799,10 @@ class RegisterNode(LifecycleNode):
         self._stale = set(stale)
         self._pub_diag.publish(DiagnosticArray(header=Header(stamp=self.get_clock().now().to_msg()), status=[status]))
 
-    def _silent_publishers(self, snap, now: float, timeout: float) -> list[str]:
-        """Notes for input topics with a publisher that has delivered nothing (since activation) for
-        `timeout` s since it appeared; each is also warned once, with the likely cause."""
+    def _silent_publishers(self, snap, now: float, timeout: float, fixed_target: bool = False) -> list[str]:
+        """Notes for input topics with a matched publisher whose clouds have not arrived for `timeout` s: none
+        since it appeared, or none since the last one (not for a fixed target). Each silence is also warned
+        once, with the likely cause."""
         notes = []
         for topic in (SOURCE, TARGET):
             sub = self._subs.get(topic)
@@ -705,20 +814,28 @@ class RegisterNode(LifecycleNode):
                 self._matched_since[topic] = None
                 continue
             since = self._matched_since[topic] = self._matched_since[topic] or now
-            if last is not None or now - since <= timeout:
+            silent = now - max(since, last or since)
+            if silent <= timeout or (last is not None and topic == TARGET and fixed_target):
                 continue
             kinds = sorted({i.qos_profile.reliability.name.lower() for i in infos})
-            note = f"{len(infos)} publisher(s) on {sub.topic_name} ({', '.join(kinds)}) but no {topic} cloud for " \
-                   f"{now - since:.1f} s"
+            what = f"no {topic} cloud" if last is None else f"no new {topic} cloud (publisher stopped delivering)"
+            note = f"{len(infos)} publisher(s) on {sub.topic_name} ({', '.join(kinds)}) but {what} for {silent:.1f} s"
             notes.append(note)
-            if topic not in self._silent_warned:
-                self._silent_warned.add(topic)
-                cause = ("large best-effort clouds are lost between processes without the shipped Fast DDS "
-                         "profile config/fastdds_large_clouds.xml in EVERY process (FASTDDS_DEFAULT_PROFILES_FILE), "
-                         "and clouds above its limit are lost even with it")
-                if "best_effort" in kinds and self._config.qos.reliability == "reliable":
-                    cause = "a best-effort publisher does not match this node's reliable subscription (qos.reliability); " + cause
-                self.get_logger().warning(f"{note}: likely cause: {cause}; see {DOCS} (Large clouds)")
+            if topic in self._silent_warned and self._silent_warned[topic] == last:
+                continue  # warned about this silence already
+            self._silent_warned[topic] = last
+            cause = ("large best-effort clouds are lost between processes without the shipped Fast DDS profile "
+                     "config/fastdds_large_clouds.xml in EVERY process (FASTDDS_DEFAULT_PROFILES_FILE), and clouds "
+                     "above its limit are lost even with it")
+            if "best_effort" in kinds:
+                cause += "; or publish the clouds with a reliable publisher (reliability reliable)"
+                if self._config.qos.reliability == "reliable":
+                    cause = ("a best-effort publisher does not match this node's reliable subscription "
+                             "(qos.reliability); " + cause)
+            if last is not None:  # it delivered before
+                stopped = "the publisher stopped publishing (driver stalled, bag ended)"
+                cause = f"{stopped}, or its clouds grew: {cause}" if "best_effort" in kinds else stopped
+            self.get_logger().warning(f"{note}: likely cause: {cause}; see {DOCS} (Large clouds)")
         return notes
 
     # ----------------------------------------------------------------- shutdown

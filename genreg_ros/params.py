@@ -186,8 +186,14 @@ def build(values: dict[str, Any], where: str = "") -> NodeConfig:
         raise ParamError(where + str(exc)) from None
 
 
+# Parameters the node no longer has -> what replaced them (said instead of a guess at a similar name).
+REMOVED = {"sync.time_jump": "removed: a stamp more than sync.slop older than the newest of its topic resets pairing"}
+
+
 def unknown_text(name: str) -> str:
     """"unknown parameter 'x' (did you mean y?)": the one wording for -p, params files and overrides."""
+    if name in REMOVED:
+        return f"unknown parameter '{name}' ({REMOVED[name]})"
     near = [n for n in BY_NAME if n.split(".")[-1] == name.split(".")[-1]]
     near = near or difflib.get_close_matches(name, list(BY_NAME), n=1, cutoff=0.8)
     return f"unknown parameter '{name}'" + (f" (did you mean {near[0]}?)" if near else "")

@@ -18,12 +18,14 @@ import threading
 import time
 from contextlib import contextmanager
 from pathlib import Path
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
 import rclpy
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 from geometry_msgs.msg import PoseWithCovarianceStamped, TransformStamped
+from rclpy.event_handler import QoSSubscriptionEventType
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.parameter import Parameter
 from rclpy.qos import QoSProfile, ReliabilityPolicy
@@ -33,8 +35,15 @@ from sensor_msgs.msg import PointCloud2, PointField
 from std_msgs.msg import Header
 
 from genreg_core.data.rgbd import RGBDSequence
+from genreg_core.errors import (
+    CheckpointError,
+    InvalidPointCloudError,
+    NonFinitePointsError,
+    TooFewPointsError,
+)
+from genreg_ros.config import NodeConfig
 from genreg_ros.conversions import msg_to_matrix
-from genreg_ros.node import RegisterNode, StartupError
+from genreg_ros.node import RegisterNode, StartupError, failure_reason
 from genreg_ros.pointcloud2 import array_to_msg, read_points
 
 SRC_FRAME, TGT_FRAME = "lidar", "map"
@@ -436,10 +445,20 @@ def bad_cloud(kind: str, t: float):
         return src, tgt, "truncated_data"
     if kind == "undecodable":  # serialised bytes that are no PointCloud2 (the node subscribes raw)
         return serialize_message(src)[:40], tgt, "undecodable_message"
+    if kind == "negative_stamp":  # rclpy takes a uint32-sized sec; the int32 field arrives as -10 s
+        src.header.stamp.sec = 2**32 - 10
+        return src, tgt, "bad_stamp"
+    if kind == "nanosec_overflow":
+        src.header.stamp.nanosec = 1_500_000_000
+        return src, tgt, "bad_stamp"
+    if kind == "duplicate_x":  # a second x field: which one is meant is unknown
+        src.fields = [*src.fields, PointField(name="x", offset=16, datatype=PointField.FLOAT32, count=1)]
+        return src, tgt, "bad_layout"
     raise ValueError(kind)
 
 
-BAD_KINDS = ["empty", "no_xyz", "all_nan", "beyond_slop", "two_million", "empty_frame", "truncated", "undecodable"]
+BAD_KINDS = ["empty", "no_xyz", "all_nan", "beyond_slop", "two_million", "empty_frame", "truncated", "undecodable",
+             "negative_stamp", "nanosec_overflow", "duplicate_x"]
 
 
 def test_each_bad_input_is_warned_counted_and_the_next_pair_registers(shared, capfd):
@@ -463,6 +482,8 @@ def test_each_bad_input_is_warned_counted_and_the_next_pair_registers(shared, ca
         reason = bad_cloud(kind, 0.0)[2]
         assert f"dropped ({reason})" in err, f"no warning for {kind}"
     assert "slop" in err and "max_points" in err and "row_step * height" in err and "not a serialised PointCloud2" in err
+    assert "stamp sec -10 is negative" in err and "'x' appear more than once" in err  # (warnings throttled per reason)
+    assert "internal_error" not in err
 
 
 def test_newer_pairs_replace_waiting_ones(shared):
@@ -594,6 +615,113 @@ def test_use_sim_time(shared):
         h.send(src, tgt)
         check_outputs(*h.wait_output(src.header), rec, src.header, SMALL_T)
         h.helper.destroy_publisher(clock_pub)
+
+
+def _stamped(msgs, header: Header) -> int:
+    return sum(m.header.stamp == header.stamp for m in msgs)
+
+
+def test_a_loop_jumping_back_less_than_a_second_registers_both_passes(shared):
+    """A bag looped with a jump back of 0.4 s (more than sync.slop): pairing resets as tf2 does, so the
+    second pass registers instead of being dropped as unmatched; the jump is counted once."""
+    h = shared
+    before = h.counters()
+    pairs = [make_pair(SMALL_T, 2100.0 + 0.2 * i, seed=i) for i in range(3)]
+    for replay in (1, 2):
+        for src, tgt, _ in pairs:
+            h.send(src, tgt)
+            h.wait(lambda src=src, n=replay: _stamped(h.transforms, src.header) >= n, 10.0, f"pass {replay} output")
+    assert h.delta(before, "registered") == 6 and h.delta(before, "time_jump") == 1
+    assert h.delta(before, "dropped.unmatched") == 0
+
+
+def _result(**extra):
+    return SimpleNamespace(confidence=0.9, fitness=0.8, tight_fitness=0.7, inlier_ratio=0.6, inlier_rmse=0.002,
+                           start="genreg", **extra)
+
+
+def test_a_degenerate_result_is_a_warn_naming_the_unconstrained_directions(shared):
+    directions = ("translation along (1.00, 0.00, 0.00)", "rotation about (0.00, 0.00, 1.00)")
+    header = Header(frame_id=TGT_FRAME)
+    (status,) = shared.node._result_status(_result(unconstrained=directions), header, SRC_FRAME, "none", 0.01, "",
+                                          False).status
+    v = diag_values(status)
+    assert status.level == DiagnosticStatus.WARN
+    assert status.message.startswith("degenerate: translation along (1.00, 0.00, 0.00); rotation about (0.00, 0.00, "
+                                      "1.00)"), status.message
+    assert v["degenerate"] == "true" and v["unconstrained"] == "; ".join(directions) and v["published"] == "true"
+    for plain in (_result(), _result(unconstrained=())):  # a core without the field, or a constrained result
+        (status,) = shared.node._result_status(plain, header, SRC_FRAME, "none", 0.01, "", False).status
+        assert status.level == DiagnosticStatus.OK and status.message == "published"
+        assert diag_values(status)["degenerate"] == "false"
+
+
+def test_registration_errors_keep_named_reasons():
+    """Every TooFewPointsError (NonFinitePointsError is one) is failed.too_few_points; others by class name."""
+    assert failure_reason(TooFewPointsError("3 distinct points")) == "too_few_points"
+    assert failure_reason(NonFinitePointsError("all NaN")) == "too_few_points"
+    assert failure_reason(CheckpointError("x")) == "checkpoint"
+    assert failure_reason(InvalidPointCloudError("x")) == "invalid_point_cloud"
+
+
+def test_lost_and_silent_input_is_counted_and_warned_with_its_cause(ns, untrained_checkpoint, capfd):
+    """A matched best-effort publisher that delivers nothing is warned with the cure (the Fast DDS profile or a
+    reliable publisher); one that delivered and stopped is warned too; the middleware's lost messages (QoS
+    event message_lost, fed here by hand) are counted per topic in /diagnostics."""
+    with running_node(ns, untrained_checkpoint, ReliabilityPolicy.BEST_EFFORT,
+                      **{"diagnostics.stale_timeout": 0.3, "diagnostics.period": 0.1}) as h:
+        logged: list[str] = []
+
+        def warned(text: str) -> bool:
+            logged.append(capfd.readouterr().err)
+            return text in "".join(logged)
+
+        h.wait(lambda: warned("likely cause"), 5.0, "the silent publisher warning")
+        s = h.status(after=time.monotonic())
+        assert s.level == DiagnosticStatus.WARN and "publisher(s) on" in s.message and "best_effort" in s.message
+        src, tgt, _ = make_pair(SMALL_T, 10.0)
+        h.send(src, tgt)
+        h.wait_output(src.header)
+        time.sleep(0.8)
+        s = h.status(after=time.monotonic())
+        assert "publisher stopped delivering" in s.message, s.message
+        lost_handlers = [e for e in h.node._subs["source"].event_handlers
+                         if e.event_type == QoSSubscriptionEventType.RCL_SUBSCRIPTION_MESSAGE_LOST]
+        assert len(lost_handlers) == 1
+        lost_handlers[0].callback(SimpleNamespace(total_count=5, total_count_change=3))
+        lost_handlers[0].callback(SimpleNamespace(total_count=7, total_count_change=2))
+        v = h.counters()
+        assert v["lost.source"] == "5" and v["lost.target"] == "0"
+    err = "".join(logged) + capfd.readouterr().err
+    assert "reliable publisher" in err and "config/fastdds_large_clouds.xml" in err
+    mine = [ln for ln in err.splitlines() if f"{ns.replace('/', '.')[1:]}.register_node" in ln]
+    assert sum("publisher stopped delivering" in ln for ln in mine) == 2, mine  # once per topic, not per period
+    assert "3 source cloud(s) lost by the middleware (5 in all)" in err
+
+
+def test_target_file_errors_are_one_line_and_never_quote_the_file(tmp_path, capfd, monkeypatch):
+    def load(path):
+        with pytest.raises(StartupError) as info:
+            RegisterNode._load_target_file(NodeConfig(target_file=str(path), target_frame="map"))
+        assert "\n" not in str(info.value)
+        return str(info.value)
+
+    assert "is a directory" in load(tmp_path)
+    assert "not found" in load(tmp_path / "missing.ply")
+    (tmp_path / "text.ply").write_text("ply\nSECRET line of a text file\n")
+    (tmp_path / "cut.ply").write_text("ply\nformat ascii 1.0\nelement vertex 3\nproperty float x\nproperty float y\n"
+                                      "property float z\nend_header\n1 2 3\nSECRET\n")
+    (tmp_path / "names.ply").write_text("ply\nformat ascii 1.0\nelement vertex 1\nproperty float x\nproperty float y\n"
+                                        "property float z\nproperty float SECRET\nend_header\n1 2\n")
+    (tmp_path / "notes.txt").write_text("SECRET")
+    assert "no complete PLY header" in load(tmp_path / "text.ply")
+    assert "malformed or truncated" in load(tmp_path / "cut.ply")
+    assert "malformed or truncated" in load(tmp_path / "names.ply")
+    assert ".ply or .pcd file is expected" in load(tmp_path / "notes.txt")
+    monkeypatch.setattr(Path, "open", lambda *a, **k: (_ for _ in ()).throw(PermissionError(13, "Permission denied")))
+    assert "cannot be read: Permission denied" in load(tmp_path / "cut.ply")
+    out = capfd.readouterr()
+    assert "SECRET" not in out.err + out.out
 
 
 def test_missing_checkpoint_and_bad_parameters_raise_startup_error(ns, untrained_checkpoint, tmp_path):

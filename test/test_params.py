@@ -119,6 +119,8 @@ def test_descriptors_carry_ranges_and_read_only():
     ("/**:\n  ros__parameters:\n    model:\n      device: cpu\n", "did you mean registration.device?"),
     ("/**:\n  ros__parameters:\n    sync:\n      slop: 1\n", "sync.slop must be a double (write 1.0, not 1)"),
     ("/**:\n  ros__parameters:\n    preprocess: {min_range: 2.0, max_range: 1.0}\n", "min_range"),
+    ("/**:\n  ros__parameters:\n    sync:\n      time_jump: 1.0\n",  # a removed parameter says what replaced it
+     "unknown parameter 'sync.time_jump' (removed: a stamp more than sync.slop older"),
     ("/other_node:\n  ros__parameters:\n    bogus: 1\n", None),  # another node's entry is not checked
 ])
 def test_params_file_check(tmp_path, content, text):
