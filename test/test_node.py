@@ -44,7 +44,7 @@ from genreg_core.errors import (
 from genreg_ros.config import NodeConfig
 from genreg_ros.conversions import msg_to_matrix
 from genreg_ros.node import RegisterNode, StartupError, failure_reason
-from genreg_ros.pointcloud2 import array_to_msg, read_points
+from genreg_ros.pointcloud2 import array_to_msg, read_points, xyz_to_msg
 
 SRC_FRAME, TGT_FRAME = "lidar", "map"
 CLOUD_DTYPE = np.dtype({
@@ -662,6 +662,33 @@ def test_registration_errors_keep_named_reasons():
     assert failure_reason(NonFinitePointsError("all NaN")) == "too_few_points"
     assert failure_reason(CheckpointError("x")) == "checkpoint"
     assert failure_reason(InvalidPointCloudError("x")) == "invalid_point_cloud"
+
+
+def _xyz_msg(points: np.ndarray, t: float, frame: str) -> PointCloud2:
+    h = stamp(t)
+    h.frame_id = frame
+    return xyz_to_msg(h, points)
+
+
+def test_degenerate_clouds_fail_by_name_or_warn_with_their_free_directions(shared):
+    """All-identical source points: failed.too_few_points. A plane (the floor alone): registered, and its
+    registration_status is a WARN saying which motions the plane leaves free."""
+    h = shared
+    rng = np.random.default_rng(5)
+    before = h.counters()
+    target = apply(SMALL_T, surface(rng, 3000))
+    h.send(_xyz_msg(np.ones((3000, 3)), 2200.0, SRC_FRAME), _xyz_msg(target, 2200.0, TGT_FRAME))
+    deadline = time.monotonic() + 10
+    while h.delta(before, "failed.too_few_points") < 1:
+        assert time.monotonic() < deadline, "no failed.too_few_points counted"
+    assert h.delta(before, "failed.internal_error") == 0
+    floor = np.c_[rng.uniform(0, 4, (3000, 2)), np.zeros(3000)]
+    src = _xyz_msg(floor, 2201.0, SRC_FRAME)
+    h.send(src, _xyz_msg(apply(SMALL_T, floor[::-1] + rng.normal(scale=0.001, size=(3000, 3))), 2201.0, TGT_FRAME))
+    status = h.result_for(src.header)
+    v = diag_values(status)
+    assert status.level == DiagnosticStatus.WARN and status.message.startswith("degenerate: "), status.message
+    assert v["degenerate"] == "true" and "translation along" in v["unconstrained"], v["unconstrained"]
 
 
 def test_lost_and_silent_input_is_counted_and_warned_with_its_cause(ns, untrained_checkpoint, capfd):
