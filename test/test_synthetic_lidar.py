@@ -23,6 +23,7 @@ from genreg_core.data.synthetic_lidar import (
     nearby_pose,
     random_sensor_pose,
     scan,
+    scan_pair,
     sensor_pose,
 )
 from genreg_core.geometry import apply_transform
@@ -188,3 +189,18 @@ def test_the_scene_profile_registers_kidnapped_lidar_scans(registrar: Registrar,
         result = registrar.register(moved, target.points)
         re, te = transform_errors(result.transformation, truth)
         assert re < 2.0 and te < 0.3, f"{scene_name}: RE {re:.2f} deg, TE {te:.3f} m"
+
+
+def test_organised_scans_with_misses_at_the_origin_register(registrar: Registrar) -> None:
+    """Drivers that keep the scan organised emit a miss as (0, 0, 0): thousands of copies of one point, whose
+    spread-free neighbourhoods made the features NaN and every registration raise RuntimeError."""
+    scene = make_scene("street")
+    sensor = LidarSensor.uniform(32, (-15.0, 25.0), 1024, max_range=40.0, keep_misses=True)  # more sky
+    rng = np.random.default_rng(12)
+    for _ in range(2):
+        pair = scan_pair(scene, rng, sensor)
+        origin = (pair.target.points == 0).all(axis=1)
+        assert origin.mean() > 0.08  # the sky and beyond 40 m: many misses
+        result = registrar.register(pair.source.points, pair.target.points)
+        re, te = transform_errors(result.transformation, pair.T_target_source)
+        assert re < 2.0 and te < 0.3, f"RE {re:.2f} deg, TE {te:.3f} m"
