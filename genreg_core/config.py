@@ -260,14 +260,19 @@ class RegistrationConfig:
     seed: int | None = setting(0, "Subsampling and PDSAC seed; None draws fresh randomness.")
     device: str = setting("cpu", "Torch device: cpu, cuda or cuda:<index>.", start_up=True)
     estimate_threads: int = setting(1, "Torch intra-op threads while the network and PDSAC run; 0: torch's own "
-                                    "setting. One is faster on small clouds: on 2 cores, 2 threads took the real "
-                                    "pair's network from 16 to 25 ms and PDSAC from 13 to 23.", low=0, high=256)
+                                    "setting. One is faster on small clouds (MODEL_CARD.md).", low=0, high=256)
 
     def __post_init__(self) -> None:
         check_ranges(self)
         _check(self.device == "cpu" or self.device == "cuda" or (
             self.device.startswith("cuda:") and self.device[5:].isdigit()),
             f"device must be cpu, cuda or cuda:<index>, got {self.device!r}")
+
+
+# The scene profile (depth cameras, rooms, LiDAR): the scene model with GICP refinement and the scene PDSAC
+# settings, best on real training pairs (MODEL_CARD.md). The node's scene params file, the benchmarks' scene
+# datasets and the calibration scripts all start from it.
+SCENE_REGISTRATION = RegistrationConfig(pdsac=SCENE_PDSAC, refine=RefineConfig(method="gicp", max_iterations=20))
 
 
 T = TypeVar("T")
