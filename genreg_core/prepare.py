@@ -39,6 +39,9 @@ from genreg_core.refine import o3d_cloud
 from genreg_core.score import TargetIndex, sorted_distinct
 
 ROBUST_QUANTILE = 0.001  # robust_extent ignores this share of the points on each side of each axis
+# No normalised point may lie farther than this many source extents from the source's box: beyond it the
+# network's squared distances leave float32 (and no registration is meaningful: clouds in other units)
+MAX_REACH = 1e6
 
 
 def validate_cloud(points: object, name: str, min_points: int) -> tuple[np.ndarray, np.ndarray]:
@@ -306,11 +309,12 @@ def prepare_pair(
         raise InvalidPointCloudError(f"source extent overflows float64 ({scale}): coordinates too large")
 
     def normalized(points: np.ndarray) -> np.ndarray:
-        with np.errstate(over="ignore"):
+        with np.errstate(over="ignore", invalid="ignore"):
             moved = ((points - offset) / scale).astype(np.float32)
-        if not np.isfinite(moved.sum(dtype=np.float64)):
-            raise InvalidPointCloudError("the target lies beyond float32 range in the source's frame (source extent "
-                                         f"{scale:.3g}): are both clouds in the same units?")
+            reach = float(np.abs(moved).max()) if np.isfinite(moved.sum(dtype=np.float64)) else np.inf
+        if reach > MAX_REACH:
+            raise InvalidPointCloudError(f"a cloud reaches {reach:.3g} source extents (of {scale:.3g}) from the source, "
+                                         f"more than {MAX_REACH:.0e}: are both clouds in the same units?")
         return moved
 
     target = normalized(dense_tgt)

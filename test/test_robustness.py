@@ -164,8 +164,13 @@ def test_coordinates_beyond_float_range_are_invalid(registrars, shape):
     reg = registrars["modelnet40_dgcnn"]
     with pytest.raises(InvalidPointCloudError, match="too large"):
         reg.register(shape.astype(np.float64) * 1.5e308, shape)  # extent overflows
-    with pytest.raises(InvalidPointCloudError, match="float32 range"):
-        reg.register(shape, shape.astype(np.float64) * 1e300)
+    for factor in (1e300, 1e20, 1e7):  # beyond float32, beyond its squares, a million extents away
+        with pytest.raises(InvalidPointCloudError, match="source extents"):
+            reg.register(shape, shape.astype(np.float64) * factor)
+    outlier = np.concatenate([np.repeat(shape, 2, axis=0), [[1e25, 0.0, 0.0]]])  # one stray point, robust extent
+    with pytest.raises(InvalidPointCloudError, match="source extents"):
+        reg.register(outlier, shape)
+    reg.register(shape, shape.astype(np.float64) * 1e4)  # a scan in a map 10,000x its size still runs
 
 
 def test_unusable_checkpoints_say_why_in_one_line(tmp_path):
