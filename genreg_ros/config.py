@@ -3,14 +3,16 @@
 `NodeConfig` nests the core's `PDSACConfig`, `RefineConfig` and `PreprocessConfig` (their defaults, ranges
 and help live in `genreg_core`), the `RegistrationConfig` scalars (group `registration`) and the node's own
 groups below. A ROS parameter's name is the setting's dotted path (`settings(NodeConfig)`), e.g.
-`refine.max_iterations`; `genreg_ros.params` declares and validates them, and `config/genreg.yaml` is
-generated from the same list:
+`refine.max_iterations`; `genreg_ros.params` declares and validates them as ROS parameters (the only
+module that needs rclpy), and the params files are generated from the same list:
 
-    python -m genreg_ros.config --write-yaml config/genreg.yaml     # after changing a setting
-    python -m genreg_ros.config --check config/genreg.yaml          # exit 1 if the file is out of date
+    python -m genreg_ros.config --write     # after changing a setting: rewrites both files in config/
+    python -m genreg_ros.config --check     # exit 1 if a shipped params file is out of date
 
-Two params files are generated from the one list: `config/genreg.yaml` (depth-camera scenes: the
-`SCENE_OVERRIDES` below) and `config/genreg_objects.yaml` (object models: the plain defaults).
+Two params files are generated from the one list: `config/genreg.yaml` (depth-camera scenes: the core's
+scene preset `SCENE_REGISTRATION`, the scene model and two workers: `SCENE_OVERRIDES` below) and
+`config/genreg_objects.yaml` (object models: the plain defaults). This module does not import rclpy: it
+holds the settings, the ROS form of a setting's value (`to_ros` / `from_ros`) and the generator.
 
 Units: metres and seconds (REP-103); distance settings that accept 0 derive it from the clouds ("auto").
 Frames and transform names: `genreg_core.geometry`.
@@ -22,6 +24,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import sys
+import types
 import typing
 from dataclasses import dataclass
 from pathlib import Path
@@ -32,7 +35,7 @@ import numpy as np
 from genreg_core.config import (
     OBJECT_MODEL,
     SCENE_MODEL,
-    SCENE_PDSAC,
+    SCENE_REGISTRATION,
     FallbackConfig,
     PDSACConfig,
     RefineConfig,
@@ -42,7 +45,7 @@ from genreg_core.config import (
     setting,
     settings,
 )
-from genreg_core.errors import ConfigError
+from genreg_core.errors import ConfigError, InvalidPointCloudError
 from genreg_core.preprocess import PreprocessConfig
 from genreg_ros.conversions import pose_matrix
 from genreg_ros.sync import MODES
@@ -65,18 +68,27 @@ class ModelParams:
         check_ranges(self, "model.")
 
 
-def _scalars_of(cls: type, name: str) -> type:
-    """A frozen dataclass with the non-nested fields of core config `cls`: same names, types, defaults,
-    limits and help (so the core stays their one home)."""
-    hints = typing.get_type_hints(cls)
-    fields = [(f.name, hints[f.name], dataclasses.field(default=f.default, metadata=f.metadata))
-              for f in dataclasses.fields(cls) if not dataclasses.is_dataclass(hints[f.name])]
-    return dataclasses.make_dataclass(name, fields, frozen=True, namespace={
-        "__doc__": f"The scalar settings of {cls.__name__} (defaults, limits and help from the core).",
-        "__post_init__": lambda self: check_ranges(self, "registration.")})
+_CORE_FIELDS = {f.name: f for f in dataclasses.fields(RegistrationConfig)}
 
 
-RegistrationScalars = _scalars_of(RegistrationConfig, "RegistrationScalars")
+def _core_setting(name: str) -> Any:
+    """The field of core `RegistrationConfig` setting `name`: its default, limits and help (their one home)."""
+    f = _CORE_FIELDS[name]
+    return dataclasses.field(default=f.default, metadata=f.metadata)
+
+
+@dataclass(frozen=True)
+class RegistrationScalars:
+    """The scalar settings of the core's RegistrationConfig (defaults, limits and help from the core); its
+    nested groups are NodeConfig's `pdsac`, `refine` and `fallback`."""
+
+    min_points: int = _core_setting("min_points")
+    seed: int | None = _core_setting("seed")
+    device: str = _core_setting("device")
+    estimate_threads: int = _core_setting("estimate_threads")
+
+    def __post_init__(self) -> None:
+        check_ranges(self, "registration.")
 
 
 @dataclass(frozen=True)
@@ -182,11 +194,11 @@ class NodeConfig:
             raise ConfigError("target_file needs target_frame (the file has no frame id)")
 
     def registration_config(self) -> RegistrationConfig:
-        """The core's RegistrationConfig: each of its fields is the NodeConfig field of the same name, or
-        the `registration` group's."""
-        return RegistrationConfig(**{
-            f.name: getattr(self, f.name) if hasattr(self, f.name) else getattr(self.registration, f.name)
-            for f in dataclasses.fields(RegistrationConfig)})
+        """The core's RegistrationConfig: the groups pdsac, refine and fallback, and the `registration` scalars."""
+        r = self.registration
+        return RegistrationConfig(pdsac=self.pdsac, refine=self.refine, fallback=self.fallback,
+                                  min_points=r.min_points, seed=r.seed, device=r.device,
+                                  estimate_threads=r.estimate_threads)
 
     def initial_guess_matrix(self) -> np.ndarray | None:
         """The initial_guess setting as a 4x4 T_target_source (None if empty); ConfigError if not rigid."""
@@ -199,15 +211,26 @@ class NodeConfig:
             except ValueError:
                 raise ConfigError("initial_guess quaternion (qx, qy, qz, qw) must not be zero") from None
         if v.size == 16:
+            from genreg_core.prepare import check_transform  # the core's check (imports torch: only here)
+
             T = v.reshape(4, 4)
-            R = T[:3, :3]
-            if not np.allclose(T[3], [0, 0, 0, 1]) or not np.allclose(R @ R.T, np.eye(3), atol=1e-4) or (
-                np.linalg.det(R) < 0
-            ):
-                raise ConfigError("initial_guess must be a rigid transform (orthonormal R, det +1, last row 0 0 0 1)")
+            try:
+                check_transform(T, "initial_guess")
+            except InvalidPointCloudError as exc:
+                raise ConfigError(str(exc)) from None
+            if not np.allclose(T[3], [0, 0, 0, 1]):
+                raise ConfigError("initial_guess must be a rigid transform (last row 0 0 0 1)")
             return T
         raise ConfigError(f"initial_guess must have 0, 7 or 16 values, got {v.size}")
 
+
+def registration_overrides(config: RegistrationConfig) -> dict[str, Any]:
+    """The settings (parameter name -> value) in which a NodeConfig registering with `config` differs from
+    NodeConfig's defaults."""
+    scalars = RegistrationScalars(**{f.name: getattr(config, f.name) for f in dataclasses.fields(RegistrationScalars)})
+    node = NodeConfig(pdsac=config.pdsac, refine=config.refine, fallback=config.fallback, registration=scalars)
+    base = {s.name: s.default for s in settings(NodeConfig())}
+    return {s.name: s.default for s in settings(node) if s.default != base[s.name]}
 
 SETTINGS: tuple[Setting, ...] = settings(NodeConfig)
 
@@ -215,11 +238,11 @@ SETTINGS: tuple[Setting, ...] = settings(NodeConfig)
 # ----------------------------------------------------------------------------- the params files
 CONFIG_DIR = Path(__file__).resolve().parent.parent / "config"
 # The shipped params files: name -> (what it is for, the settings that differ from NodeConfig's defaults).
-# Scenes: the scene model, small_gicp's GICP (best of the refinements on real pairs, MODEL_CARD.md), the
-# scene PDSAC settings (genreg_core.config.SCENE_PDSAC); two workers: a 30 Hz depth camera's full-resolution
+# Scenes: the scene model and the core's scene preset (genreg_core.config.SCENE_REGISTRATION: small_gicp's
+# GICP and the scene PDSAC settings, MODEL_CARD.md); two workers: a 30 Hz depth camera's full-resolution
 # pairs need both cores (scripts/bench_node.py soak)
-SCENE_OVERRIDES = {"model.checkpoint": SCENE_MODEL, "refine.method": "gicp", "pdsac.sample_size": SCENE_PDSAC.sample_size,
-                   "workers": 2}
+SCENE_OVERRIDES: dict[str, Any] = {"model.checkpoint": SCENE_MODEL, **registration_overrides(SCENE_REGISTRATION),
+                                   "workers": 2}
 PROFILES: dict[str, tuple[str, dict[str, Any]]] = {
     "genreg.yaml": (f"depth-camera and indoor scenes (the scene model {SCENE_MODEL})", SCENE_OVERRIDES),
     "genreg_objects.yaml": (f"object models (the object model {OBJECT_MODEL}, clouds of a single object)", {}),
@@ -236,6 +259,40 @@ YAML_HEADER = """\
 """
 
 
+# ----------------------------------------------------------------------------- a setting's ROS value (no rclpy)
+DOUBLE_ARRAY = "double_array"  # the ROS kind of a tuple/list setting
+
+
+def optional_type(hint: Any) -> tuple[Any, bool]:
+    """(the type inside Optional[...], whether it was optional)."""
+    if typing.get_origin(hint) in (typing.Union, types.UnionType) and type(None) in typing.get_args(hint):
+        return next(a for a in typing.get_args(hint) if a is not type(None)), True
+    return hint, False
+
+
+def ros_kind(s: Setting) -> Any:
+    """bool, int, float, str or DOUBLE_ARRAY: the ROS type of a setting."""
+    base, _ = optional_type(s.type)
+    return DOUBLE_ARRAY if typing.get_origin(base) in (tuple, list) else base
+
+
+def to_ros(s: Setting, value: Any) -> Any:
+    """A setting's value as a ROS parameter value (ROS has no None: an optional integer is -1, a list [])."""
+    if value is None:
+        return -1 if ros_kind(s) is int else []
+    return [float(v) for v in value] if ros_kind(s) is DOUBLE_ARRAY else value
+
+
+def from_ros(s: Setting, value: Any) -> Any:
+    """A ROS parameter value as the setting's value (inverse of `to_ros`)."""
+    optional = optional_type(s.type)[1]
+    if ros_kind(s) is DOUBLE_ARRAY:
+        values = tuple(float(v) for v in (value or ()))
+        return None if optional and not values else values
+    return None if optional and value == -1 else value
+
+
+# ----------------------------------------------------------------------------- the YAML text
 def yaml_scalar(value: Any) -> str:
     """A parameter value as rcl's YAML reads it back with the same type (floats always have a dot)."""
     if isinstance(value, bool):
@@ -262,7 +319,7 @@ def _comment(s: Setting) -> str:
         parts.append(f"[{s.low:g}, {s.high:g}]")
     elif s.low is not None:
         parts.append(f"(>= {s.low:g})")
-    if type(None) in typing.get_args(s.type):  # ROS has no None (genreg_ros.params.to_ros)
+    if type(None) in typing.get_args(s.type):  # ROS has no None (to_ros)
         parts.append("ROS: -1 for None." if int in typing.get_args(s.type) else "ROS: [] for none.")
     return " ".join(parts)
 
@@ -273,11 +330,8 @@ def defaults(name: str = "genreg.yaml") -> dict[str, Any]:
     return {s.name: overrides.get(s.name, s.default) for s in SETTINGS}
 
 
-def yaml_text(name: str = "genreg.yaml", ros_value=None) -> str:
-    """The shipped params file `name` (a key of PROFILES): every parameter with its value and a comment.
-    `ros_value(setting, value)` gives a value's ROS form (default: `genreg_ros.params.to_ros`)."""
-    if ros_value is None:
-        from genreg_ros.params import to_ros as ros_value
+def yaml_text(name: str = "genreg.yaml") -> str:
+    """The shipped params file `name` (a key of PROFILES): every parameter with its ROS value and a comment."""
     values = defaults(name)
     header = YAML_HEADER.format(purpose=PROFILES[name][0], name=name)
     lines, group = [header + "/**:", "  ros__parameters:"], ()
@@ -289,7 +343,7 @@ def yaml_text(name: str = "genreg.yaml", ros_value=None) -> str:
         for depth in range(common, len(path)):
             lines.append("    " + "  " * depth + f"{path[depth]}:")
         group = tuple(path)
-        entry = "    " + "  " * len(path) + f"{leaf}: {yaml_scalar(ros_value(s, values[s.name]))}"
+        entry = "    " + "  " * len(path) + f"{leaf}: {yaml_scalar(to_ros(s, values[s.name]))}"
         lines.append(f"{entry:<40} # {_comment(s)}")
     return "\n".join(lines) + "\n"
 

@@ -1,10 +1,11 @@
-"""register_node's ROS parameters, derived from `genreg_ros.config.SETTINGS` (nothing is listed here).
+"""register_node's ROS parameters, derived from `genreg_ros.config.SETTINGS` (nothing is listed here); the
+only settings module that imports rclpy.
 
 Each setting becomes one parameter of the same dotted name: its ROS type follows the field's type, its
 descriptor carries the help, the range and read_only (start-up settings). Values are validated by building
 a `NodeConfig` from them, so the dataclasses' own checks (ranges, choices, cross-field rules) are the
 node's. ROS has no None: an optional integer is -1 when None (registration.seed), an optional list is []
-(preprocess.crop_min / crop_max); `to_ros` / `from_ros` are those converters. A params file is checked
+(preprocess.crop_min / crop_max); `genreg_ros.config.to_ros` / `from_ros` are those converters. A params file is checked
 before rcl reads it: unknown keys, wrong types and invalid values are one-line errors.
 """
 
@@ -13,8 +14,6 @@ from __future__ import annotations
 import difflib
 import fnmatch
 import math
-import types
-import typing
 from collections.abc import Callable, Iterator
 from typing import Any
 
@@ -32,9 +31,8 @@ from rclpy.parameter import Parameter
 
 from genreg_core.config import Setting, from_dict, settings
 from genreg_core.errors import ConfigError
-from genreg_ros.config import SETTINGS, NodeConfig
+from genreg_ros.config import DOUBLE_ARRAY, SETTINGS, NodeConfig, from_ros, optional_type, ros_kind, to_ros
 
-DOUBLE_ARRAY = "double_array"
 ROS_TYPES = {
     bool: (ParameterType.PARAMETER_BOOL, "bool"),
     int: (ParameterType.PARAMETER_INTEGER, "integer"),
@@ -52,44 +50,15 @@ class ParamError(ValueError):
 
 
 # ----------------------------------------------------------------------------- setting <-> ROS parameter
-def _optional(hint: Any) -> tuple[Any, bool]:
-    """(the type inside Optional[...], whether it was optional)."""
-    if typing.get_origin(hint) in (typing.Union, types.UnionType) and type(None) in typing.get_args(hint):
-        return next(a for a in typing.get_args(hint) if a is not type(None)), True
-    return hint, False
-
-
-def ros_kind(s: Setting) -> Any:
-    """bool, int, float, str or DOUBLE_ARRAY: the ROS type of a setting."""
-    base, _ = _optional(s.type)
-    return DOUBLE_ARRAY if typing.get_origin(base) in (tuple, list) else base
-
-
 def ros_range(s: Setting) -> tuple[float, float] | None:
     """The inclusive ROS range of a numeric setting (an optional integer's None is -1), or None."""
-    kind, optional = ros_kind(s), _optional(s.type)[1]
+    kind, optional = ros_kind(s), optional_type(s.type)[1]
     if kind is int and (optional or s.low is not None or s.high is not None):
         low = -1 if optional else (-INT_LIMIT if s.low is None else s.low)
         return low, INT_LIMIT if s.high is None else s.high
     if kind is float and (s.low is not None or s.high is not None):
         return (-math.inf if s.low is None else s.low), (math.inf if s.high is None else s.high)
     return None
-
-
-def to_ros(s: Setting, value: Any) -> Any:
-    """A setting's value as a ROS parameter value."""
-    if value is None:
-        return -1 if ros_kind(s) is int else []
-    return [float(v) for v in value] if ros_kind(s) is DOUBLE_ARRAY else value
-
-
-def from_ros(s: Setting, value: Any) -> Any:
-    """A ROS parameter value as the setting's value (inverse of `to_ros`)."""
-    optional = _optional(s.type)[1]
-    if ros_kind(s) is DOUBLE_ARRAY:
-        values = tuple(float(v) for v in (value or ()))
-        return None if optional and not values else values
-    return None if optional and value == -1 else value
 
 
 def check_type(s: Setting, value: Any) -> str | None:

@@ -5,16 +5,27 @@ from __future__ import annotations
 
 import dataclasses
 import re
+import subprocess
+import sys
+import typing
 from pathlib import Path
 
 import pytest
 import yaml
 
-from genreg_core.config import PDSACConfig, RefineConfig, RegistrationConfig, settings
+from genreg_core.config import SCENE_REGISTRATION, PDSACConfig, RefineConfig, RegistrationConfig, settings
 from genreg_core.errors import ConfigError
 from genreg_core.preprocess import PreprocessConfig
-from genreg_ros import params
-from genreg_ros.config import PROFILES, SCENE_OVERRIDES, SETTINGS, NodeConfig, defaults, yaml_text
+from genreg_ros import config, params
+from genreg_ros.config import (
+    PROFILES,
+    SCENE_OVERRIDES,
+    SETTINGS,
+    NodeConfig,
+    RegistrationScalars,
+    defaults,
+    yaml_text,
+)
 
 CONFIG = Path(__file__).resolve().parent.parent / "config"
 PARAMS_FILE = CONFIG / "genreg.yaml"
@@ -45,6 +56,56 @@ def test_params_file_names_and_values_match_the_dataclasses(name):
 def test_scene_file_is_for_the_scene_model_and_objects_file_for_the_object_model():
     assert defaults("genreg.yaml")["model.checkpoint"] == SCENE_OVERRIDES["model.checkpoint"] == "7scenes"
     assert defaults("genreg_objects.yaml")["model.checkpoint"] == NodeConfig().model.checkpoint == "modelnet40_dgcnn"
+
+
+def test_generating_the_params_files_needs_no_rclpy():
+    code = ("import sys, genreg_ros.config as c\n"
+            "texts = [c.yaml_text(name) for name in c.PROFILES]\n"
+            "assert c.main(['--check']) == 0 and all('ros__parameters' in t for t in texts)\n"
+            "loaded = sorted(m for m in sys.modules if m.split('.')[0] == 'rclpy' or m == 'genreg_ros.params')\n"
+            "assert not loaded, loaded\n")
+    run = subprocess.run([sys.executable, "-c", code], check=False, capture_output=True, text=True,
+                         cwd=CONFIG.parent, timeout=120)
+    assert run.returncode == 0, run.stderr[-2000:]
+
+
+def test_the_documented_commands_are_the_real_ones():
+    documented = re.findall(r"python -m genreg_ros\.config([^\n#]*)", config.__doc__)
+    assert documented and {tuple(args.split()) for args in documented} == {("--write",), ("--check",)}
+    assert config.main(["--check"]) == 0
+    with pytest.raises(SystemExit):
+        config.main(["--check", "config/genreg.yaml"])  # what it once said: argparse rejects it
+
+
+def test_scene_file_registers_with_the_cores_scene_preset():
+    scene = params.to_config({name: params.to_ros(params.BY_NAME[name], v) for name, v in defaults("genreg.yaml").items()})
+    assert scene.registration_config() == SCENE_REGISTRATION
+    assert scene.model.checkpoint == "7scenes" and scene.workers == 2
+    assert set(SCENE_OVERRIDES) == {"model.checkpoint", "workers", "refine.method", "pdsac.sample_size"}
+
+
+def test_registration_scalars_are_the_cores_scalar_settings():
+    core_types, my_types = typing.get_type_hints(RegistrationConfig), typing.get_type_hints(RegistrationScalars)
+    core = {f.name: f for f in dataclasses.fields(RegistrationConfig) if not dataclasses.is_dataclass(core_types[f.name])}
+    mine = {f.name: f for f in dataclasses.fields(RegistrationScalars)}
+    assert mine.keys() == core.keys()
+    for name, f in mine.items():
+        assert (f.default, f.metadata, my_types[name]) == (core[name].default, core[name].metadata, core_types[name])
+    nested = {f.name for f in dataclasses.fields(RegistrationConfig)} - core.keys()
+    assert nested == {"pdsac", "refine", "fallback"}  # NodeConfig's groups of the same names
+    c = NodeConfig(registration=RegistrationScalars(min_points=40, seed=None, estimate_threads=2))
+    assert c.registration_config() == RegistrationConfig(refine=c.refine, min_points=40, seed=None, estimate_threads=2)
+    with pytest.raises(ConfigError, match="registration.min_points"):
+        RegistrationScalars(min_points=1)
+
+
+def test_a_16_value_initial_guess_must_be_rigid():
+    T = [0.0, -1.0, 0.0, 1.0, 1.0, 0.0, 0.0, 2.0, 0.0, 0.0, 1.0, 3.0, 0.0, 0.0, 0.0, 1.0]
+    assert NodeConfig(initial_guess=tuple(T)).initial_guess_matrix()[:3, 3].tolist() == [1.0, 2.0, 3.0]
+    for bad, text in ((T[:15] + [2.0], "last row"), ([2 * v for v in T[:12]] + T[12:], "rigid"),
+                      ([-v for v in T[:12]] + T[12:], "det")):
+        with pytest.raises(ConfigError, match=text):
+            NodeConfig(initial_guess=tuple(bad))
 
 
 def test_distance_settings_are_metres_with_auto():
