@@ -34,8 +34,12 @@ counted drop; the node carries on. A stamp more than `sync.slop` older than its 
 loop, simulator reset) resets pairing, tracking and topic guesses, as tf2 clears its buffer on a jump back.
 Messages the middleware reports lost (QoS event message_lost) are counted per topic.
 
+Every output of a pair, its `registration_status` included, is published by the publisher thread in the
+order the pairs were taken; a rejected result publishes its status alone.
+
 Parameters: `genreg_ros.config` (the settings) and `genreg_ros.params` (their declaration and checks);
-counters and /diagnostics: `genreg_ros.diagnostics`; messages: `genreg_ros.pointcloud2`, `.conversions`.
+what is published: `genreg_ros.policy`; guesses and tracking: `genreg_ros.tracking`; counters and
+/diagnostics: `genreg_ros.diagnostics`; messages: `genreg_ros.pointcloud2`, `.conversions`.
 """
 
 from __future__ import annotations
@@ -80,7 +84,9 @@ from genreg_ros.pointcloud2 import (
     transform_cloud,
     xyz_to_msg,
 )
+from genreg_ros.policy import Verdict, judge
 from genreg_ros.sync import SOURCE, TARGET, InOrder, LatestSlot, Pair, PairSync
+from genreg_ros.tracking import Start, Tracker
 from genreg_ros.workers import RemoteRegistrar
 
 NODE_NAME = "register_node"
@@ -88,6 +94,7 @@ WARN_THROTTLE_S = 2.0  # per drop/failure reason
 MIN_CROPPED_TARGET = 100  # target_crop_radius: fewer points left -> the whole target is used
 DOCS = "docs/ros_node.md"
 SUCCESS, FAILURE = TransitionCallbackReturn.SUCCESS, TransitionCallbackReturn.FAILURE
+_LEVELS = {"ok": DiagnosticStatus.OK, "warn": DiagnosticStatus.WARN, "error": DiagnosticStatus.ERROR}
 
 _DROP_TEXT = {
     "unmatched": "no {other} cloud within sync.slop ({slop} s) of its stamp",
@@ -120,12 +127,22 @@ class _FixedTarget:
 
 
 @dataclass(frozen=True)
-class _Publication:
-    """A registered pair handed from the worker to the publisher thread: what to encode and publish, and
-    the worker's timings for the per-pair statistics."""
+class _Prepared:
+    """A pair's decoded and preprocessed clouds, with the time spent decoding and preprocessing (s)."""
+
+    source: Any  # the decoded source cloud (DecodedCloud): every field is kept in the aligned cloud
+    source_points: np.ndarray  # preprocessed
+    target_points: np.ndarray  # preprocessed
+    decode_s: float
+    preprocess_s: float
+
+
+@dataclass(frozen=True)
+class _Outputs:
+    """A published result: what to encode and publish, and the worker's timings for the per-pair statistics."""
 
     header: Header
-    source: Any  # the decoded source cloud (DecodedCloud): every field is kept in the aligned cloud
+    source: Any  # the decoded source cloud (DecodedCloud)
     source_frame: str
     result: Any  # genreg_core RegistrationResult
     latency: float
@@ -136,14 +153,25 @@ class _Publication:
 
 
 @dataclass(frozen=True)
-class _Guess:
-    """A guess from a topic: T_target_source, the frames it names (child None: any), its arrival time."""
+class _Publication:
+    """What a registered pair publishes, handed from its worker to the publisher thread (in pair order):
+    its registration_status, then its outputs (None: rejected, the status alone)."""
 
-    T: np.ndarray
-    parent: str
-    child: str | None
-    received: float
-    origin: str
+    status: DiagnosticArray
+    outputs: _Outputs | None = None
+
+
+def _figures(prepared: _Prepared, target_points: np.ndarray, result: Any, start_s: float,
+             register_s: float) -> dict[str, float]:
+    """A registered pair's figures for the statistics (`start_s`: choosing the start and cropping, s)."""
+    return {
+        "fitness": result.fitness, "confidence": result.confidence, "inlier_rmse_m": result.inlier_rmse,
+        "decode_ms": 1e3 * prepared.decode_s, "preprocess_ms": 1e3 * (prepared.preprocess_s + start_s),
+        "register_ms": 1e3 * register_s,
+        "points_in": float(prepared.source.num_input), "points_registered": float(len(prepared.source_points)),
+        "points_target": float(len(target_points)),
+        "initial_guess_won": float(result.start == "initial_guess"),  # refinement from the guess won
+    }
 
 
 def _snake(name: str) -> str:
@@ -234,7 +262,7 @@ class RegisterNode(LifecycleNode):
             self.destroy_node()
             raise StartupError(str(exc)) from None
         c = self._config
-        self._lock = threading.Lock()  # guards _sync, _newest, _guess, _last_T*, _generation
+        self._lock = threading.Lock()  # guards _sync and _newest (and a reset of both with the tracker)
         self._stats = Stats()
         self._warned: dict[str, float] = {}
         self._stale: set[str] = set()
@@ -246,11 +274,7 @@ class RegisterNode(LifecycleNode):
         self._startup_error = ""
         self._sync = self._new_sync(c)
         self._newest: dict[str, int | None] = {SOURCE: None, TARGET: None}
-        self._generation = 0  # incremented by every reset: a result of an older generation is not tracked
-        self._guess: _Guess | None = None
-        self._last_T: np.ndarray | None = None
-        self._last_T_time = -np.inf
-        self._last_T_stamp = -1  # source stamp (ns) of _last_T: with several workers results finish out of order
+        self._tracker = Tracker()  # topic guesses and the last result
         self._target_cache: tuple[Any, np.ndarray, PreprocessConfig] | None = None
         self._slot = LatestSlot()
         self._take_lock = threading.Lock()  # a pair's ticket is taken with the pair: publication order
@@ -491,8 +515,7 @@ class RegisterNode(LifecycleNode):
         with self._lock:
             self._sync.clear(keep_latest_target=self._sync.mode == "latest_target" and why != "cleanup")
             self._newest = {SOURCE: None, TARGET: None}
-            self._guess, self._last_T, self._last_T_time, self._last_T_stamp = None, None, -np.inf, -1
-            self._generation += 1
+            self._tracker.reset()
         if self._slot.put(None) is not None:
             self._drop("reset", f"a waiting pair was discarded ({why})")
         if count:
@@ -577,8 +600,7 @@ class RegisterNode(LifecycleNode):
         except ValueError as exc:
             self._drop("bad_initial_guess", f"{origin} message ignored: {exc}")
             return
-        with self._lock:
-            self._guess = _Guess(T, parent, child, time.monotonic(), origin)
+        self._tracker.set_guess(T, parent, child, origin, time.monotonic())
 
     # ----------------------------------------------------------------- worker
     def _work(self, registrar: Any) -> None:
@@ -593,65 +615,81 @@ class RegisterNode(LifecycleNode):
                 outbox.done(ticket, self._survive(lambda p: self._process(p, registrar), pair, ""))
 
     def _process(self, pair: Pair, registrar: Any) -> _Publication | None:
-        """Decode, preprocess, register and check one pair: what to publish, or None (dropped or failed:
-        counted)."""
-        c, generation = self._config, self._generation
-        src_cloud, tgt_cloud = pair.source, pair.target
+        """Decode, preprocess, register and judge one pair: what to publish (a rejected result: its status
+        alone), or None (dropped or failed: counted)."""
+        c, generation = self._config, self._tracker.generation
+        prepared = self._prepare(pair, c)
+        if prepared is None:
+            return None
+        t0 = time.perf_counter()
+        start = self._start(c, pair)
+        target_points = self._crop(c, prepared, start.T)
+        t1 = time.perf_counter()
+        result = self._register(registrar, c, prepared.source_points, target_points, start.T)
+        if result is None:
+            return None
+        t2 = time.perf_counter()
+        verdict = judge(result, c)
+        header = Header(stamp=Time(nanoseconds=pair.source_stamp).to_msg(), frame_id=pair.target.frame)
+        latency = time.monotonic() - max(pair.source.received, pair.target.received)
+        status = self._result_status(result, header, pair.source.frame, start.origin, latency, verdict)
+        if not verdict.publish:
+            self._fail(verdict.reason, verdict.why)
+            return _Publication(status)
+        if verdict.low_confidence:  # published, yet flagged: a user must not mistake it for a good result
+            self._warn("low_confidence", f"published a low-confidence result: confidence {result.confidence:.2f} < "
+                       f"warn_confidence {c.warn_confidence} (fitness {result.fitness:.2f})")
+        self._tracker.record(result.transformation, pair.source_stamp, generation, time.monotonic())
+        timings = _figures(prepared, target_points, result, t1 - t0, t2 - t1)
+        return _Publication(status, _Outputs(header, prepared.source, pair.source.frame, result, latency,
+                                             prepared.decode_s, timings, verdict.low_confidence,
+                                             prepared.source_points is prepared.source.points))
+
+    def _prepare(self, pair: Pair, c: NodeConfig) -> _Prepared | None:
+        """The pair's clouds decoded and preprocessed; None if one cannot be decoded (counted)."""
         t0 = time.perf_counter()
         try:
-            src = read_points(src_cloud.msg, c.max_points)
+            src = read_points(pair.source.msg, c.max_points)
         except PointCloud2Error as exc:
             self._drop(exc.reason, f"source cloud: {exc}")
             return None
         t1 = time.perf_counter()
         try:
-            tgt_points, t_tgt = self._decode_target(tgt_cloud, c.max_points, c.preprocess)
+            target_points, t_target = self._decode_target(pair.target, c.max_points, c.preprocess)
         except PointCloud2Error as exc:
             self._drop(exc.reason, f"target cloud: {exc}")
             return None
+        source_points = preprocess(src.points, c.preprocess)
         t2 = time.perf_counter()
-        src_points = preprocess(src.points, c.preprocess)
+        return _Prepared(src, source_points, target_points, (t1 - t0) + t_target, (t2 - t1) - t_target)
+
+    def _start(self, c: NodeConfig, pair: Pair) -> Start:
+        """The pair's initial guess (`genreg_ros.tracking`); a topic guess discarded on the way is logged
+        (expired) or counted as a drop (frames that are not the pair's)."""
+        start = self._tracker.start(c, pair.source.frame, pair.target.frame, time.monotonic())
+        if start.discarded == "expired":
+            self.get_logger().info(start.note)
+        elif start.discarded:
+            self._drop(start.discarded, start.note)
+        return start
+
+    def _crop(self, c: NodeConfig, prepared: _Prepared, guess: np.ndarray | None) -> np.ndarray:
+        """The target points to register against: with target_crop_radius and a fixed or latest target,
+        those around the source's predicted position."""
+        if c.target_crop_radius > 0 and (self._fixed is not None or self._sync.mode == "latest_target"):
+            return self._crop_target(prepared.target_points, prepared.source_points, guess, c.target_crop_radius)
+        return prepared.target_points
+
+    def _register(self, registrar: Any, c: NodeConfig, source: np.ndarray, target: np.ndarray,
+                  guess: np.ndarray | None) -> Any:
+        """The registrar's result under the settings in force; None if registration failed (counted)."""
         if registrar.config != (cfg := c.registration_config()):
             registrar.config = cfg
-        guess, guess_origin = self._initial_guess(c, src_cloud.frame, tgt_cloud.frame)
-        if c.target_crop_radius > 0 and (self._fixed is not None or self._sync.mode == "latest_target"):
-            tgt_points = self._crop_target(tgt_points, src_points, guess, c.target_crop_radius)
-        t3 = time.perf_counter()
         try:
-            result = registrar.register(src_points, tgt_points, initial_guess=guess)
+            return registrar.register(source, target, initial_guess=guess)
         except GenRegError as exc:
             self._fail(failure_reason(exc), f"registration failed: {exc}")
             return None
-        t4 = time.perf_counter()
-        T_target_source = result.transformation
-        header = Header(stamp=Time(nanoseconds=stamp_ns(src_cloud.msg.header)).to_msg(), frame_id=tgt_cloud.frame)
-        reject = ""
-        if result.fitness < c.min_fitness:
-            reject = "low_fitness", f"fitness {result.fitness:.3f} < min_fitness {c.min_fitness}"
-        elif result.confidence < c.min_confidence:
-            reject = "low_confidence_rejected", f"confidence {result.confidence:.3f} < min_confidence {c.min_confidence}"
-        low_confidence = not reject and result.confidence < c.warn_confidence
-        latency = time.monotonic() - max(src_cloud.received, tgt_cloud.received)
-        self._pubs["registration_status"].publish(self._result_status(
-            result, header, src_cloud.frame, guess_origin, latency, reject[1] if reject else "", low_confidence))
-        if reject:
-            self._fail(*reject)
-            return None
-        if low_confidence:  # published, yet flagged: a user must not mistake it for a good result
-            self._warn("low_confidence", f"published a low-confidence result: confidence {result.confidence:.2f} < "
-                       f"warn_confidence {c.warn_confidence} (fitness {result.fitness:.2f})")
-        with self._lock:
-            # no reset since the pair was taken, and no newer pair's result (workers finish out of order)
-            if generation == self._generation and pair.source_stamp >= self._last_T_stamp:
-                self._last_T, self._last_T_time, self._last_T_stamp = T_target_source, time.monotonic(), pair.source_stamp
-        return _Publication(header, src, src_cloud.frame, result, latency, (t1 - t0) + t_tgt, {
-            "fitness": result.fitness, "confidence": result.confidence, "inlier_rmse_m": result.inlier_rmse,
-            "decode_ms": 1e3 * ((t1 - t0) + t_tgt), "preprocess_ms": 1e3 * ((t3 - t2) + (t2 - t1 - t_tgt)),
-            "register_ms": 1e3 * (t4 - t3),
-            "points_in": float(src.num_input), "points_registered": float(len(src_points)),
-            "points_target": float(len(tgt_points)),
-            "initial_guess_won": float(result.start == "initial_guess"),  # refinement from the guess won
-        }, low_confidence, src_points is src.points)
 
     def _publish_loop(self) -> None:
         while (job := self._outbox.get()) is not None:
@@ -666,8 +704,13 @@ class RegisterNode(LifecycleNode):
             self._fail("internal_error", f"unexpected {type(exc).__name__}{during}: {exc}")
             return None
 
-    def _publish(self, job: _Publication) -> None:
-        """Encode and publish one result (aligned cloud, transform, pose, tf, generated cloud), then count it."""
+    def _publish(self, publication: _Publication) -> None:
+        """Publish one pair's registration_status, then, unless it was rejected, encode and publish its result
+        (aligned cloud, transform, pose, tf, generated cloud) and count it."""
+        self._pubs["registration_status"].publish(publication.status)
+        job = publication.outputs
+        if job is None:
+            return
         c, result, header = self._config, job.result, job.header
         t0 = time.perf_counter()
         T_target_source = result.transformation
@@ -690,26 +733,20 @@ class RegisterNode(LifecycleNode):
                        {**job.timings, "encode_ms": 1e3 * (t1 - t0), "publish_ms": 1e3 * (t2 - t1)},
                        job.low_confidence)
 
-    def _result_status(self, result, header: Header, source_frame: str, guess_origin: str, latency: float,
-                       rejected: str, low_confidence: bool) -> DiagnosticArray:
-        """The per-result `registration_status` message (header: the source stamp and the target frame). A result
-        whose geometry leaves directions unconstrained (the core's `unconstrained`) is WARN and says `degenerate`."""
-        unconstrained = tuple(getattr(result, "unconstrained", ()) or ())
-        level = DiagnosticStatus.ERROR if rejected else DiagnosticStatus.WARN if low_confidence or unconstrained \
-            else DiagnosticStatus.OK
-        message = f"rejected: {rejected}" if rejected else "published with low confidence" if low_confidence \
-            else "published"
-        if unconstrained:
-            message = f"degenerate: {'; '.join(unconstrained)} (target frame); {message}"
+    def _result_status(self, result: Any, header: Header, source_frame: str, guess_origin: str, latency: float,
+                       verdict: Verdict) -> DiagnosticArray:
+        """The per-result `registration_status` message (header: the source stamp and the target frame); its
+        level and message are the verdict's (`genreg_ros.policy`)."""
         values = {
             "confidence": f"{result.confidence:.4f}", "fitness": f"{result.fitness:.4f}",
             "tight_fitness": f"{result.tight_fitness:.4f}", "inlier_ratio": f"{result.inlier_ratio:.4f}",
             "inlier_rmse_m": f"{result.inlier_rmse:.6f}",
-            "start": result.start, "initial_guess": guess_origin, "published": str(not rejected).lower(),
+            "start": result.start, "initial_guess": guess_origin, "published": str(verdict.publish).lower(),
             "source_frame": source_frame, "target_frame": header.frame_id, "latency_ms": f"{1e3 * latency:.1f}",
-            "degenerate": str(bool(unconstrained)).lower(), "unconstrained": "; ".join(unconstrained),
+            "degenerate": str(verdict.degenerate).lower(), "unconstrained": "; ".join(verdict.unconstrained),
         }
-        status = DiagnosticStatus(level=level, name=f"{self.get_name()}: result", message=message,
+        status = DiagnosticStatus(level=_LEVELS[verdict.level], name=f"{self.get_name()}: result",
+                                  message=verdict.message,
                                   hardware_id=self.get_fully_qualified_name(),
                                   values=[KeyValue(key=k, value=v) for k, v in values.items()])
         return DiagnosticArray(header=header, status=[status])
@@ -733,7 +770,7 @@ class RegisterNode(LifecycleNode):
                      radius: float) -> np.ndarray:
         """The fixed target's points within `radius` of the source's centre moved by the pose estimate (the
         guess, else the last result); the whole target without an estimate or if too few points are left."""
-        T = guess if guess is not None else self._last_T
+        T = guess if guess is not None else self._tracker.last_result
         if T is None or len(source) == 0:
             return target
         centre = T[:3, :3] @ source.mean(axis=0) + T[:3, 3]
@@ -743,33 +780,6 @@ class RegisterNode(LifecycleNode):
                        "predicted source position; registering against the whole target")
             return target
         return kept
-
-    def _initial_guess(self, c: NodeConfig, source_frame: str, target_frame: str) -> tuple[np.ndarray | None, str]:
-        """The start of this pair's registration and where it came from: a topic guess (unless expired,
-        or older than the last result when tracking), the last result (use_last_result_as_guess), the
-        parameter, or none."""
-        with self._lock:
-            g, last_T, last_time = self._guess, self._last_T, self._last_T_time
-        now = time.monotonic()
-        if g is not None and c.initial_guess_timeout > 0 and now - g.received > c.initial_guess_timeout:
-            self._clear_guess(g)
-            self.get_logger().info(f"{g.origin} guess expired ({now - g.received:.1f} s > initial_guess_timeout "
-                                   f"{c.initial_guess_timeout} s)")
-        elif g is not None and (g.parent != target_frame or g.child not in (None, source_frame)):
-            self._clear_guess(g)
-            self._drop("initial_guess_frames", f"{g.origin} guess ignored: it maps {g.child or '(any)'} into "
-                       f"'{g.parent}', the pair maps '{source_frame}' into '{target_frame}'")
-        elif g is not None and not (c.use_last_result_as_guess and last_time > g.received):
-            return g.T, g.origin
-        if c.use_last_result_as_guess and last_T is not None:
-            return last_T, "last_result"
-        T = c.initial_guess_matrix()
-        return T, "none" if T is None else "parameter"
-
-    def _clear_guess(self, g: _Guess) -> None:
-        with self._lock:
-            if self._guess is g:
-                self._guess = None
 
     # ----------------------------------------------------------------- drops, failures, diagnostics
     def _drop(self, reason: str, text: str) -> None:

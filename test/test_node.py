@@ -11,6 +11,7 @@ guess registers its 25-degree transform.
 
 from __future__ import annotations
 
+import dataclasses
 import signal
 import subprocess
 import sys
@@ -45,6 +46,7 @@ from genreg_ros.config import NodeConfig
 from genreg_ros.conversions import msg_to_matrix
 from genreg_ros.node import RegisterNode, StartupError, failure_reason
 from genreg_ros.pointcloud2 import array_to_msg, read_points, xyz_to_msg
+from genreg_ros.policy import judge
 
 SRC_FRAME, TGT_FRAME = "lidar", "map"
 CLOUD_DTYPE = np.dtype({
@@ -596,6 +598,62 @@ def test_low_confidence_results_are_published_but_warned_and_counted(shared, cap
     assert "low-confidence result" in capfd.readouterr().err
 
 
+def test_every_output_of_a_pair_status_included_is_published_in_order_by_the_publisher_thread(shared, monkeypatch):
+    """registration_status goes through the in-order outbox with the pair's other outputs (with several
+    workers a status published by its worker could overtake the transform of an earlier pair): each pair's
+    status, then its outputs, all from the publisher thread; a rejected result publishes its status alone."""
+    node = shared.node
+    published: list[tuple[str, str, int]] = []
+
+    class Recorder:
+        def __init__(self, name: str, pub) -> None:
+            self.name, self.pub = name, pub
+
+        def publish(self, msg) -> None:
+            published.append((self.name, threading.current_thread().name, msg.header.stamp.sec))
+            self.pub.publish(msg)
+
+    register, fitness = node.registrar.register, iter([0.0, 1.0])
+
+    def register_with_fitness(*args, **kwargs):  # the first result rejected by min_fitness, the second not
+        return dataclasses.replace(register(*args, **kwargs), fitness=next(fitness))
+
+    monkeypatch.setattr(node.registrar, "register", register_with_fitness)
+    monkeypatch.setattr(node, "_pubs", {name: Recorder(name, pub) for name, pub in node._pubs.items()})
+    with shared.params(min_fitness=0.5) as h:
+        headers = []
+        for t in (950.0, 951.0):
+            src, tgt, _ = make_pair(SMALL_T, t)
+            h.send(src, tgt)
+            headers.append(src.header)
+            h.result_for(src.header)
+        h.wait_output(src.header)
+        h.wait(lambda: len(published) >= 5, what="the second pair's outputs")
+    assert [diag_values(shared.result_for(hd))["published"] for hd in headers] == ["false", "true"]
+    assert published == [("registration_status", "genreg_publisher", 950)] + [
+        (name, "genreg_publisher", 951) for name in ("registration_status", "aligned_cloud", "transform", "pose")]
+
+
+def test_a_rejected_results_publication_is_its_status_alone(shared):
+    """The worker hands a rejected result to the outbox as its registration_status and nothing else."""
+    from genreg_ros.node import _Cloud
+    from genreg_ros.sync import Pair
+
+    src, tgt, _ = make_pair(SMALL_T, 960.0)
+    pair = Pair(_Cloud(src, SRC_FRAME, time.monotonic()), _Cloud(tgt, TGT_FRAME, time.monotonic()), 960 * 10**9, 0)
+    result = SimpleNamespace(fitness=0.2, confidence=0.9, tight_fitness=0.1, inlier_ratio=0.1, inlier_rmse=0.01,
+                             start="genreg", transformation=np.eye(4), unconstrained=())
+    registrar = SimpleNamespace(config=shared.node.config.registration_config(),
+                                register=lambda *a, **k: result)
+    with shared.params(min_fitness=0.5) as h:
+        job = h.node._process(pair, registrar)
+    assert job is not None and job.outputs is None
+    (status,) = job.status.status
+    assert status.level == DiagnosticStatus.ERROR and status.message == "rejected: fitness 0.200 < min_fitness 0.5"
+    assert diag_values(status)["published"] == "false" and job.status.header.frame_id == TGT_FRAME
+    assert job.status.header.stamp.sec == 960
+
+
 def test_use_sim_time(shared):
     from rosgraph_msgs.msg import Clock as ClockMsg
 
@@ -643,15 +701,16 @@ def _result(**extra):
 def test_a_degenerate_result_is_a_warn_naming_the_unconstrained_directions(shared):
     directions = ("translation along (1.00, 0.00, 0.00)", "rotation about (0.00, 0.00, 1.00)")
     header = Header(frame_id=TGT_FRAME)
-    (status,) = shared.node._result_status(_result(unconstrained=directions), header, SRC_FRAME, "none", 0.01, "",
-                                          False).status
+    result = _result(unconstrained=directions)
+    (status,) = shared.node._result_status(result, header, SRC_FRAME, "none", 0.01, judge(result, NodeConfig())).status
     v = diag_values(status)
     assert status.level == DiagnosticStatus.WARN
     assert status.message.startswith("degenerate: translation along (1.00, 0.00, 0.00); rotation about (0.00, 0.00, "
                                       "1.00)"), status.message
     assert v["degenerate"] == "true" and v["unconstrained"] == "; ".join(directions) and v["published"] == "true"
     for plain in (_result(), _result(unconstrained=())):  # a core without the field, or a constrained result
-        (status,) = shared.node._result_status(plain, header, SRC_FRAME, "none", 0.01, "", False).status
+        verdict = judge(plain, NodeConfig())
+        (status,) = shared.node._result_status(plain, header, SRC_FRAME, "none", 0.01, verdict).status
         assert status.level == DiagnosticStatus.OK and status.message == "published"
         assert diag_values(status)["degenerate"] == "false"
 

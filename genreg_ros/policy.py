@@ -1,0 +1,56 @@
+"""Whether register_node publishes a registration result, and what its `registration_status` says.
+
+Pure Python (no rclpy): `judge(result, config)` reads the result's fitness, confidence and unconstrained
+directions and the thresholds min_fitness, min_confidence and warn_confidence, and returns a `Verdict`.
+Rejected (not published): fitness below min_fitness (`low_fitness`), else confidence below min_confidence
+(`low_confidence_rejected`). Published with a warning: confidence below warn_confidence. A result whose
+geometry leaves directions unconstrained (the core's `unconstrained`) is published as WARN, `degenerate`.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any, Literal
+
+from genreg_ros.config import NodeConfig
+
+Level = Literal["ok", "warn", "error"]  # the registration_status level (DiagnosticStatus OK, WARN, ERROR)
+
+
+@dataclass(frozen=True)
+class Verdict:
+    """What to do with one result: publish it or not, why not, and its status level and message."""
+
+    publish: bool
+    reason: str  # the failed.<reason> count of a rejected result ("" when published)
+    why: str  # one line: why it was rejected ("" when published)
+    low_confidence: bool  # published, below warn_confidence
+    unconstrained: tuple[str, ...]  # the directions the geometry leaves free (degenerate when any)
+
+    @property
+    def degenerate(self) -> bool:
+        return bool(self.unconstrained)
+
+    @property
+    def level(self) -> Level:
+        return "error" if not self.publish else "warn" if self.low_confidence or self.degenerate else "ok"
+
+    @property
+    def message(self) -> str:
+        text = f"rejected: {self.why}" if not self.publish else \
+            "published with low confidence" if self.low_confidence else "published"
+        return f"degenerate: {'; '.join(self.unconstrained)} (target frame); {text}" if self.degenerate else text
+
+
+def judge(result: Any, config: NodeConfig) -> Verdict:
+    """The verdict on `result` (a RegistrationResult: fitness, confidence, unconstrained) under the
+    thresholds of `config`."""
+    unconstrained = tuple(getattr(result, "unconstrained", ()) or ())
+    reason, why = "", ""
+    if result.fitness < config.min_fitness:
+        reason, why = "low_fitness", f"fitness {result.fitness:.3f} < min_fitness {config.min_fitness}"
+    elif result.confidence < config.min_confidence:
+        reason, why = "low_confidence_rejected", \
+            f"confidence {result.confidence:.3f} < min_confidence {config.min_confidence}"
+    low_confidence = not reason and result.confidence < config.warn_confidence
+    return Verdict(not reason, reason, why, low_confidence, unconstrained)

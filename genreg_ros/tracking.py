@@ -1,0 +1,121 @@
+"""Where register_node starts each registration: initial guesses and tracking.
+
+Pure Python (no rclpy), thread-safe; times are time.monotonic seconds passed in by the caller. The start of
+a pair's registration (`Tracker.start`) is, in this order of preference:
+- the newest guess from a topic (`initial_guess` or `initialpose`), unless it expired (older than
+  initial_guess_timeout, 0: never) or names other frames than the pair's (both discard it), or, when
+  tracking, a result newer than it exists;
+- the last result (use_last_result_as_guess), recorded only for pairs taken since the last reset and never
+  replaced by the result of an older pair (several workers finish out of order);
+- the initial_guess parameter;
+- none.
+`reset` forgets the topic guess and the last result and starts a new generation: a result of a pair taken
+before it is not recorded.
+"""
+
+from __future__ import annotations
+
+import threading
+from dataclasses import dataclass
+
+import numpy as np
+
+from genreg_ros.config import NodeConfig
+
+ORIGINS = ("none", "parameter", "initial_guess", "initialpose", "last_result")  # registration_status values
+
+
+@dataclass(frozen=True)
+class TopicGuess:
+    """A guess from a topic: T_target_source, the frames it names (child None: any), its arrival time and
+    its topic (initial_guess or initialpose)."""
+
+    T: np.ndarray
+    parent: str
+    child: str | None
+    received: float
+    origin: str
+
+
+@dataclass(frozen=True)
+class Start:
+    """A pair's start: T_target_source (None: no guess), where it came from (one of ORIGINS), and a topic
+    guess discarded on the way ("expired" or "initial_guess_frames", with a one-line note; "" if none)."""
+
+    T: np.ndarray | None
+    origin: str
+    discarded: str = ""
+    note: str = ""
+
+
+class Tracker:
+    """The topic guess, the last result and the reset generation of one node."""
+
+    def __init__(self) -> None:
+        self._lock = threading.Lock()
+        self._guess: TopicGuess | None = None
+        self._last_T: np.ndarray | None = None
+        self._last_time = -np.inf
+        self._last_stamp = -1  # source stamp (ns) of the last result
+        self._generation = 0
+
+    @property
+    def generation(self) -> int:
+        """Incremented by every reset: take it with a pair, hand it back to `record`."""
+        return self._generation
+
+    @property
+    def last_result(self) -> np.ndarray | None:
+        """The last recorded result, T_target_source (None after a reset)."""
+        return self._last_T
+
+    @property
+    def guess(self) -> TopicGuess | None:
+        """The topic guess in force (None: none, or discarded)."""
+        return self._guess
+
+    def set_guess(self, T: np.ndarray, parent: str, child: str | None, origin: str, now: float) -> None:
+        """A guess arrived on topic `origin`: it replaces any earlier one."""
+        with self._lock:
+            self._guess = TopicGuess(T, parent, child, now, origin)
+
+    def start(self, config: NodeConfig, source_frame: str, target_frame: str, now: float) -> Start:
+        """The start of a pair mapping `source_frame` into `target_frame` under `config`
+        (initial_guess_timeout, use_last_result_as_guess, initial_guess)."""
+        with self._lock:
+            g, last_T, last_time = self._guess, self._last_T, self._last_time
+        discarded = note = ""
+        tracking = config.use_last_result_as_guess
+        if g is not None and config.initial_guess_timeout > 0 and now - g.received > config.initial_guess_timeout:
+            discarded = "expired"
+            note = (f"{g.origin} guess expired ({now - g.received:.1f} s > initial_guess_timeout "
+                    f"{config.initial_guess_timeout} s)")
+        elif g is not None and (g.parent != target_frame or g.child not in (None, source_frame)):
+            discarded = "initial_guess_frames"
+            note = (f"{g.origin} guess ignored: it maps {g.child or '(any)'} into '{g.parent}', the pair maps "
+                    f"'{source_frame}' into '{target_frame}'")
+        elif g is not None and not (tracking and last_time > g.received):
+            return Start(g.T, g.origin)
+        if discarded:
+            with self._lock:
+                if self._guess is g:  # not replaced meanwhile
+                    self._guess = None
+        if tracking and last_T is not None:
+            return Start(last_T, "last_result", discarded, note)
+        T = config.initial_guess_matrix()
+        return Start(T, "none" if T is None else "parameter", discarded, note)
+
+    def record(self, T: np.ndarray, source_stamp: int, generation: int, now: float) -> bool:
+        """Keep a published result for tracking, unless a reset came after its pair was taken (`generation`
+        is not the current one) or a newer pair's result is already kept. Whether it was kept."""
+        with self._lock:
+            if generation != self._generation or source_stamp < self._last_stamp:
+                return False
+            self._last_T, self._last_time, self._last_stamp = T, now, source_stamp
+            return True
+
+    def reset(self) -> None:
+        """Forget the topic guess and the last result; results of pairs taken before now are not recorded."""
+        with self._lock:
+            self._guess, self._last_T, self._last_time, self._last_stamp = None, None, -np.inf, -1
+            self._generation += 1
