@@ -13,8 +13,8 @@ Stages of `register_many` (`register` is one pair of it):
     6. refine    `refine.refine` (ICP); with an initial guess, refinement from the guess competes with
                  GenReg's start (fitness decides); without one, the guard `refine.guard_icp`; opt-in, the
                  classical `fallback.fallback` (FPFH + RANSAC) when the confidence stays low
-    7. score     `score`: fitness, inlier ratio, confidence, covariance, unconstrained motions; the transform
-                 in input units
+    7. score     `score`: fitness, inlier ratio, covariance, unconstrained motions; the transform in input units
+    8. confidence `confidence`: P(the pose is right) from the verification, by the checkpoint's calibration
 Conventions (frames, units, T_target_source): `genreg_core.geometry`. `transformation` is the input's
 target_from_source; internally everything runs in the prepared pair's normalised frame.
 """
@@ -30,7 +30,8 @@ from dataclasses import dataclass, field
 import numpy as np
 import torch
 
-from genreg_core.checkpoint import load_checkpoint
+from genreg_core.checkpoint import load_checkpoint, resolve_checkpoint
+from genreg_core.confidence import FEATURES, SPACINGS, ConfidenceModel, features, load_beside
 from genreg_core.config import OBJECT_MODEL, PDSACConfig, RegistrationConfig
 from genreg_core.fallback import fallback
 from genreg_core.geometry import apply_transform
@@ -45,6 +46,7 @@ from genreg_core.score import (
     confidence,
     fitness_distance,
     overlap_fitness,
+    overlap_shares,
     pose_covariance,
     unconstrained_directions,
 )
@@ -85,14 +87,17 @@ class RegistrationResult:
     tight_fitness: float  # the same share within 1x the target's spacing
     inlier_ratio: float  # fraction of generated correspondences (both directions) consistent with T
     inlier_rmse: float  # RMS distance of the fitness inliers, input units
-    confidence: float  # in [0, 1]: geometric mean of fitness, tight_fitness and inlier_ratio (score.confidence),
-    # lowered where the geometry leaves a motion unconstrained (score.unconstrained_directions)
+    confidence: float  # the probability that the pose is right (the model's success rule; genreg_core.confidence)
+    # from its calibration, for a checkpoint without one the geometric mean of fitness, tight_fitness and
+    # inlier_ratio (score.confidence); times the degeneracy factor (score.unconstrained_directions)
     start: str = "genreg"  # what the final pose grew from: "genreg", "initial_guess" (the guess, or the
     # guard's ICP from identity without a guess, overlapped the target better) or "fallback" (FPFH + RANSAC)
     covariance: np.ndarray | None = None  # (6, 6) of the final pose, ROS order (x, y, z, rot x, y, z), m, rad
     timings: dict[str, float] = field(default_factory=dict)  # seconds per stage and 'total'
     unconstrained: tuple[str, ...] = ()  # motions the aligned geometry does not constrain, target frame, e.g.
     # "rotation about (0.00, 0.00, 1.00)" (score.unconstrained_directions); empty: fully constrained
+
+    verification: dict[str, float] = field(default_factory=dict)  # the confidence's inputs (confidence.FEATURES)
 
     @property
     def degenerate(self) -> bool:
@@ -119,19 +124,22 @@ class Estimate:
 class Registrar:
     """A loaded GenReg model plus its registration settings. Thread-compatible, not thread-safe."""
 
-    def __init__(self, model: torch.nn.Module, config: RegistrationConfig | None = None) -> None:
+    def __init__(self, model: torch.nn.Module, config: RegistrationConfig | None = None,
+                 calibration: ConfidenceModel | None = None) -> None:
         self.config = config or RegistrationConfig()
         self.model = model.to(self.config.device).eval()
+        self.calibration = calibration  # P(success) from the verification (None: the uncalibrated score)
 
     @classmethod
     def from_checkpoint(
         cls, name_or_path: str | os.PathLike = OBJECT_MODEL, config: RegistrationConfig | None = None,
         num_points: int | None = None,
     ) -> Registrar:
-        """Load a shipped model by name or a checkpoint file; CheckpointError if unusable."""
+        """Load a shipped model by name or a checkpoint file, with the confidence calibration beside it
+        (`genreg_core.confidence`); CheckpointError if unusable."""
         config = config or RegistrationConfig()
         model, _ = load_checkpoint(name_or_path, num_points=num_points, device=config.device)
-        return cls(model, config)
+        return cls(model, config, load_beside(resolve_checkpoint(name_or_path)))
 
     @property
     def num_points(self) -> int:
@@ -256,6 +264,10 @@ class Registrar:
                                      (COVARIANCE_FLOOR_M, COVARIANCE_FLOOR_RAD),
                                      scale=p.scale)  # in the normalised frame (the fitness' index), metric
         unconstrained, constrained = unconstrained_directions(moved, p.target_index, distance)
+        shares = overlap_shares(p.dense_src, p.target_index, T_n, np.multiply(SPACINGS, p.target_index.spacing))
+        verification = features(shares, inlier_ratio, constrained)  # 8. confidence
+        probability = constrained * (self.calibration.probability(verification) if self.calibration is not None
+                                     else confidence(fitness, tight_fitness, inlier_ratio))
         a_gen = p.points_to_input_units(est.source_generated[k].double().cpu().numpy())
         b_gen = p.points_to_input_units(est.target_generated[k].double().cpu().numpy())
         aligned = p.aligned_source(T)  # float32, one product
@@ -270,10 +282,11 @@ class Registrar:
             tight_fitness=tight_fitness,
             inlier_ratio=inlier_ratio,
             inlier_rmse=rmse_n * p.scale,
-            confidence=confidence(fitness, tight_fitness, inlier_ratio) * constrained,
+            confidence=probability,
             start=start,
             covariance=covariance,
             unconstrained=unconstrained,
+            verification=dict(zip(FEATURES, verification.tolist(), strict=True)),
             timings={"preprocess": p.seconds, "network": shared["network"], "pdsac": shared["pdsac"],
                      "refine": t1 - t0, "postprocess": t2 - t1,
                      "total": p.seconds + shared["network"] + shared["pdsac"] + t2 - t0},

@@ -132,6 +132,13 @@ def overlap_fitness(src: np.ndarray, tgt: np.ndarray | TargetIndex, T: np.ndarra
     return len(inliers) / len(squared), float(np.sqrt(inliers.mean())) if len(inliers) else 0.0
 
 
+def overlap_shares(src: np.ndarray, tgt: np.ndarray | TargetIndex, T: np.ndarray, distances: np.ndarray) -> np.ndarray:
+    """The share of moved source points with a target point within each of `distances` (one query: the
+    fitness of `overlap_fitness` at several radii)."""
+    _, squared = TargetIndex.of(tgt).nearest(apply_transform(T, np.asarray(src, dtype=np.float64)))
+    return (squared[None, :] < np.square(np.asarray(distances, dtype=np.float64))[:, None]).mean(axis=1)
+
+
 def confidence(fitness: float, tight_fitness: float, inlier_ratio: float) -> float:
     """In [0, 1]: the geometric mean of fitness, tight fitness and inlier ratio. The tight fitness tells a
     pose that seats a partial source on the target from one that only overlaps it loosely (on training

@@ -1,0 +1,94 @@
+"""Pipeline stage "confidence": the probability that a registration is right, from its verification.
+
+A registration is verified by how the aligned source sits on the target (`score.overlap_shares`: the
+share of source points within 1, 2, 3 and 5 target spacings), how many of the network's generated
+correspondences the pose keeps (the inlier ratio) and how well the geometry constrains it
+(`score.unconstrained_directions`). A logistic model over those `FEATURES` turns them into P(success),
+where success is the model's rule (`ConfidenceModel.success`: scenes RE < 2 deg and TE < 5 cm; objects
+RE < 5 deg). It is fitted on training pairs only (`scripts/calibrate_confidence.py`) for one checkpoint and
+one profile, and ships beside the checkpoint as `<name>.confidence.json`, tied to the checkpoint by its
+SHA-256: a calibration never silently serves another model. A checkpoint without one keeps the uncalibrated
+score `score.confidence` (the geometric mean of fitness, tight fitness and inlier ratio). Either is then
+multiplied by the degeneracy factor: where the geometry leaves a motion free, no pose along it is "right".
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import math
+import os
+from collections.abc import Sequence
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import numpy as np
+
+from genreg_core.errors import CheckpointError
+
+SPACINGS = (1.0, 2.0, 3.0, 5.0)  # overlap shares at these many target spacings
+FEATURES = ("log_share_1", "log_share_2", "log_share_3", "log_share_5", "log_inlier_ratio", "log_constraint",
+            "share_1_over_3", "share_2_over_5")
+FLOOR = 1e-3  # logs of shares below this are taken at it
+SUFFIX = ".confidence.json"
+
+
+def features(shares: Sequence[float], inlier_ratio: float, constraint: float) -> np.ndarray:
+    """The `FEATURES` vector of one verified pose: overlap `shares` at `SPACINGS`, the generated
+    correspondences' inlier ratio, the degeneracy factor (1: fully constrained)."""
+    s1, s2, s3, s5 = (max(float(x), FLOOR) for x in shares)
+    logs = [math.log(x) for x in (s1, s2, s3, s5, max(inlier_ratio, FLOOR), max(constraint, FLOOR))]
+    return np.array([*logs, s1 / s3, s2 / s5])
+
+
+@dataclass(frozen=True)
+class ConfidenceModel:
+    """A fitted logistic model P(success | features) and what it was fitted for."""
+
+    coef: tuple[float, ...]  # one per FEATURES entry
+    intercept: float
+    success: str  # the success rule the probability is of, e.g. "RE < 2 deg and TE < 0.05 m"
+    checkpoint_sha256: str  # the checkpoint it belongs to
+    fitted_on: str  # the training pairs and the registration profile
+    date: str
+    features: tuple[str, ...] = FEATURES
+
+    def probability(self, x: np.ndarray) -> float:
+        """P(success) of one `features` vector."""
+        z = float(np.dot(self.coef, x)) + self.intercept
+        return 1.0 / (1.0 + math.exp(-z)) if z > -700 else 0.0
+
+    def save(self, path: str | os.PathLike) -> Path:
+        path = Path(path)
+        path.write_text(json.dumps(asdict(self), indent=1) + "\n")
+        return path
+
+    @classmethod
+    def load(cls, path: str | os.PathLike, checkpoint: str | os.PathLike | None = None) -> ConfidenceModel:
+        """Read a calibration; with `checkpoint`, check that it was fitted for that file (CheckpointError)."""
+        try:
+            values = json.loads(Path(path).read_text())
+            model = cls(**{**values, "coef": tuple(values["coef"]), "features": tuple(values["features"])})
+        except (OSError, ValueError, TypeError, KeyError) as exc:
+            raise CheckpointError(f"confidence calibration {path} is unreadable: {exc}") from None
+        if model.features != FEATURES or len(model.coef) != len(FEATURES):
+            raise CheckpointError(f"confidence calibration {path} has features {model.features}, expected {FEATURES}")
+        if checkpoint is not None and model.checkpoint_sha256 != file_sha256(checkpoint):
+            raise CheckpointError(f"confidence calibration {path} was fitted for another checkpoint than {checkpoint}")
+        return model
+
+
+def file_sha256(path: str | os.PathLike) -> str:
+    return hashlib.sha256(Path(path).read_bytes()).hexdigest()
+
+
+def calibration_path(checkpoint: str | os.PathLike) -> Path:
+    """Where a checkpoint's calibration lives: beside it, `<stem>.confidence.json`."""
+    checkpoint = Path(checkpoint)
+    return checkpoint.with_name(checkpoint.stem + SUFFIX)
+
+
+def load_beside(checkpoint: str | os.PathLike) -> ConfidenceModel | None:
+    """The calibration beside a checkpoint file, or None if it has none."""
+    path = calibration_path(checkpoint)
+    return ConfidenceModel.load(path, checkpoint) if path.is_file() else None

@@ -1,0 +1,216 @@
+#!/usr/bin/env python3
+"""Fit the confidence calibration of a shipped model on training pairs, or measure it on held-out ones.
+
+    python scripts/calibrate_confidence.py fit 7scenes            # writes genreg_core/weights/7scenes.confidence.json
+    python scripts/calibrate_confidence.py fit modelnet40_dgcnn
+    python scripts/calibrate_confidence.py held-out 7scenes       # AUC, ECE, confident-wrong on held-out pairs
+
+`fit` registers training pairs through the public API with the model's profile(s), labels each result by
+the model's success rule, fits a logistic regression (scikit-learn) over `genreg_core.confidence.FEATURES`
+(the result's `verification`), prints its 5-fold cross-validated ROC AUC and expected calibration error
+(ECE, 10 equal-width bins), writes the calibration beside the checkpoint and a reliability diagram to
+docs/reliability_<model>.png. `held-out` registers pairs never used for fitting with the shipped
+calibration and prints the same figures per set, plus success and the confident-wrong count (confidence
+>= 0.5 and wrong).
+
+Training pairs (never the held-out ones):
+- scene model `7scenes`, profile `config.SCENE_REGISTRATION`: redkitchen frames 0-799, frame pairs 1, 5, 10,
+  30, 60, 90 and 300 frames apart (the last mostly without overlap), the source kidnapped (up to 45 deg
+  about a random axis, 0.5 m). Success: RE < 2 deg and TE < 5 cm.
+- object models, profiles "GenReg alone" and "+ point-to-point ICP" (the objects params file) pooled:
+  ModelNet40 train split (seen categories): clean pairs at N=512 up to 180 deg, and RPM-Net style
+  partial-to-partial crops. Success: RE < 5 deg.
+Held-out pairs: redkitchen frames 800-999 (30, 60, 90 apart, kidnapped), SUN3D (unseen; 20 apart,
+kidnapped); ModelNet40 test split, unseen categories (clean up to 180 deg; crops).
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from collections.abc import Callable, Iterator
+from pathlib import Path
+
+import numpy as np
+from tqdm import tqdm
+
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
+
+from genreg_core.checkpoint import resolve_checkpoint
+from genreg_core.confidence import FEATURES, ConfidenceModel, calibration_path, file_sha256
+from genreg_core.config import SCENE_MODEL, SCENE_REGISTRATION, RefineConfig, RegistrationConfig
+from genreg_core.data import FramePairs, ModelNetPairs, RGBDSequence, load_modelnet40
+from genreg_core.data.modelnet40 import rpmnet_crop_pair
+from genreg_core.metrics import transform_errors
+from genreg_core.registration import Registrar
+
+REPO = Path(__file__).resolve().parent.parent
+Pair = tuple[np.ndarray, np.ndarray, np.ndarray]  # source, target, T_target_source
+SCENE_RULE = "RE < 2 deg and TE < 0.05 m"
+OBJECT_RULE = "RE < 5 deg"
+
+
+def kidnapped_frames(sequence: RGBDSequence, gaps: tuple[int, ...], frames: range | None, per_gap: int,
+                     seed: int) -> dict[str, list[Pair]]:
+    """`per_gap` evenly spread kidnapped frame pairs per gap."""
+    sets = {}
+    for gap in gaps:
+        pairs = FramePairs(sequence, gap, frames, kidnap=True, seed=seed)
+        picks = np.linspace(0, len(pairs) - 1, min(per_gap, len(pairs))).astype(int)
+        sets[f"{sequence.name} {gap} apart"] = [(it["source"], it["target"], it["transform"].astype(np.float64))
+                                                for it in (pairs[int(i)] for i in picks)]
+    return sets
+
+
+def object_pairs(split: str, categories: str, count: int, seed: int) -> dict[str, list[Pair]]:
+    """`count` clean pairs (up to 180 deg) and `count` RPM-Net style crops of a ModelNet40 split."""
+    shapes = load_modelnet40(split, categories)
+    picks = np.linspace(0, len(shapes.points) - 1, count).astype(int)
+    clean = ModelNetPairs(shapes, 512, "clean", max_angle_deg=180.0, seed=seed)
+    crops = []
+    for i in picks:
+        source, target, T = rpmnet_crop_pair(shapes.points[i].astype(np.float64), np.random.default_rng((seed, 7, int(i))))
+        crops.append((source.astype(np.float32), target.astype(np.float32), T))
+    return {f"ModelNet40 {split} {categories} clean 180 deg": [
+                (it["source"], it["target"], it["transform"].astype(np.float64)) for it in (clean[int(i)] for i in picks)],
+            f"ModelNet40 {split} {categories} crops": crops}
+
+
+def profiles(model: str) -> dict[str, RegistrationConfig]:
+    if model == SCENE_MODEL:
+        return {"scene profile (GICP)": SCENE_REGISTRATION}
+    return {"GenReg alone": RegistrationConfig(), "+ point-to-point ICP": RegistrationConfig(
+        refine=RefineConfig(method="point_to_point"))}
+
+
+def success(model: str) -> tuple[str, Callable[[float, float], bool]]:
+    if model == SCENE_MODEL:
+        return SCENE_RULE, lambda re, te: re < 2.0 and te < 0.05
+    return OBJECT_RULE, lambda re, te: re < 5.0
+
+
+def training_sets(model: str, per_set: int) -> dict[str, list[Pair]]:
+    if model == SCENE_MODEL:
+        return kidnapped_frames(RGBDSequence.redkitchen(), (1, 5, 10, 30, 60, 90, 300), range(800), per_set, 2027)
+    return object_pairs("train", "seen", per_set, 2027)
+
+
+def held_out_sets(model: str, per_set: int) -> dict[str, list[Pair]]:
+    if model == SCENE_MODEL:
+        sets = kidnapped_frames(RGBDSequence.redkitchen(), (30, 60, 90), range(800, 1000), per_set, 2028)
+        for fragment in (1, 2):
+            sets.update(kidnapped_frames(RGBDSequence.sun3d(fragment), (20,), None, per_set // 2, 2028))
+        return sets
+    return object_pairs("test", "unseen", per_set, 2028)
+
+
+def register(model: str, sets: dict[str, list[Pair]], calibrated: bool) -> Iterator[tuple[str, str, np.ndarray, float, bool, float]]:
+    """(set, profile, features, confidence, success, ms) of every pair under every profile of the model."""
+    _, ok = success(model)
+    for profile, config in profiles(model).items():
+        reg = Registrar.from_checkpoint(model, config)
+        if not calibrated:
+            reg.calibration = None
+        for name, pairs in sets.items():
+            for source, target, T in tqdm(pairs, desc=f"{model} {profile} {name}", leave=False):
+                t0 = time.perf_counter()
+                result = reg.register(source, target)
+                ms = 1e3 * (time.perf_counter() - t0)
+                re, te = transform_errors(result.transformation, T)
+                yield name, profile, np.array([result.verification[f] for f in FEATURES]), result.confidence, ok(re, te), ms
+
+
+def expected_calibration_error(p: np.ndarray, y: np.ndarray, bins: int = 10) -> float:
+    """Sum over equal-width bins of |mean(y) - mean(p)| weighted by the bin's share of the results."""
+    which = np.minimum((p * bins).astype(int), bins - 1)
+    return float(sum(abs(y[which == b].mean() - p[which == b].mean()) * (which == b).mean()
+                     for b in range(bins) if (which == b).any()))
+
+
+def summary(p: np.ndarray, y: np.ndarray) -> str:
+    from sklearn.metrics import roc_auc_score
+
+    auc = roc_auc_score(y, p) if 0 < y.mean() < 1 else float("nan")
+    wrong = int(((p >= 0.5) & ~y).sum())
+    return (f"n {len(y):4d}  success {y.mean():6.1%}  AUC {auc:.3f}  ECE {expected_calibration_error(p, y):.3f}  "
+            f"confident-wrong {wrong} of {int((p >= 0.5).sum())} at >= 0.5")
+
+
+def reliability_diagram(p: np.ndarray, y: np.ndarray, title: str, path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    from sklearn.calibration import calibration_curve
+
+    observed, predicted = calibration_curve(y, p, n_bins=10, strategy="uniform")
+    fig, (top, bottom) = plt.subplots(2, 1, figsize=(5, 6), height_ratios=(3, 1), sharex=True)
+    top.plot([0, 1], [0, 1], "k:", label="perfectly calibrated")
+    top.plot(predicted, observed, "o-", label="GenReg")
+    top.set_ylabel("observed success rate")
+    top.set_title(title.replace(": ", ":\n", 1), fontsize=9)
+    top.legend(loc="upper left")
+    bottom.hist(p, bins=10, range=(0, 1))
+    bottom.set_xlabel("confidence (predicted probability of success)")
+    bottom.set_ylabel("results")
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+
+
+def fit(model: str, per_set: int) -> None:
+    from sklearn.linear_model import LogisticRegression
+    from sklearn.model_selection import StratifiedKFold, cross_val_predict
+
+    rows = list(register(model, training_sets(model, per_set), calibrated=False))
+    X = np.stack([r[2] for r in rows])
+    y = np.array([r[4] for r in rows])
+    regression = LogisticRegression(C=1.0, max_iter=5000)
+    held = cross_val_predict(regression, X, y, cv=StratifiedKFold(5, shuffle=True, random_state=0),
+                             method="predict_proba")[:, 1]
+    print(f"{model}: {len(y)} training results ({', '.join(profiles(model))}), 5-fold cross-validated:")
+    print("  all        ", summary(held, y))
+    for name in dict.fromkeys(r[0] for r in rows):
+        mask = np.array([r[0] == name for r in rows])
+        print(f"  {name:28s}", summary(held[mask], y[mask]))
+    regression.fit(X, y)
+    checkpoint = resolve_checkpoint(model)
+    rule, _ = success(model)
+    sets = ", ".join(dict.fromkeys(r[0] for r in rows))
+    calibration = ConfidenceModel(tuple(float(c) for c in regression.coef_[0]), float(regression.intercept_[0]),
+                                  rule, file_sha256(checkpoint),
+                                  f"{len(y)} training results: {sets}; profiles: {', '.join(profiles(model))}",
+                                  time.strftime("%Y-%m-%d"))
+    print("wrote", calibration.save(calibration_path(checkpoint)))
+    figure = REPO / "docs" / f"reliability_{model}.png"
+    reliability_diagram(held, y, f"{model}: training pairs, 5-fold cross-validated ({rule})", figure)
+    print("wrote", figure)
+
+
+def held_out(model: str, per_set: int) -> None:
+    rows = list(register(model, held_out_sets(model, per_set), calibrated=True))
+    p = np.array([r[3] for r in rows])
+    y = np.array([r[4] for r in rows])
+    rule, _ = success(model)
+    print(f"{model}: held-out pairs, shipped calibration ({rule}); median {np.median([r[5] for r in rows]):.0f} ms")
+    for profile in dict.fromkeys(r[1] for r in rows):
+        for name in dict.fromkeys(r[0] for r in rows):
+            mask = np.array([r[0] == name and r[1] == profile for r in rows])
+            print(f"  {profile:22s} {name:30s}", summary(p[mask], y[mask]))
+    print(f"  {'all':53s}", summary(p, y))
+    reliability_diagram(p, y, f"{model}: held-out pairs ({rule})", REPO / "docs" / f"reliability_{model}_held_out.png")
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("mode", choices=("fit", "held-out"))
+    parser.add_argument("model", help="shipped model name (7scenes, modelnet40_dgcnn, modelnet40_partial, modelnet40)")
+    parser.add_argument("--pairs", type=int, default=60, help="pairs per set (default 60)")
+    args = parser.parse_args(argv)
+    (fit if args.mode == "fit" else held_out)(args.model, args.pairs)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

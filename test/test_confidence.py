@@ -1,0 +1,63 @@
+"""The calibrated confidence: every shipped model carries a calibration fitted for it, and its probability
+separates right from wrong poses on held-out pairs (ground-truth poses as the truth): consecutive frames
+score high, clouds of two different buildings score low."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from genreg_core.checkpoint import resolve_checkpoint
+from genreg_core.confidence import FEATURES, ConfidenceModel, calibration_path, features, load_beside
+from genreg_core.config import SCENE_REGISTRATION
+from genreg_core.data import FramePairs, RGBDSequence
+from genreg_core.errors import CheckpointError
+from genreg_core.metrics import transform_errors
+from genreg_core.registration import Registrar
+
+SHIPPED = ("modelnet40", "modelnet40_dgcnn", "modelnet40_partial", "7scenes")
+
+
+@pytest.mark.parametrize("name", SHIPPED)
+def test_every_shipped_model_has_its_own_calibration(name):
+    model = load_beside(resolve_checkpoint(name))
+    assert model is not None and model.features == FEATURES and len(model.coef) == len(FEATURES)
+    assert Registrar.from_checkpoint(name).calibration == model
+    # a well-seated pose against one that overlaps nothing
+    assert model.probability(features([0.9, 0.97, 0.99, 1.0], 0.6, 1.0)) > 0.8
+    assert model.probability(features([0.01, 0.03, 0.05, 0.1], 0.01, 1.0)) < 0.1
+
+
+def test_a_calibration_serves_only_its_checkpoint_and_its_features(tmp_path):
+    other = resolve_checkpoint("modelnet40_dgcnn")
+    with pytest.raises(CheckpointError, match="another checkpoint"):
+        ConfidenceModel.load(calibration_path(resolve_checkpoint("7scenes")), other)
+    values = json.loads(calibration_path(resolve_checkpoint("7scenes")).read_text())
+    (tmp_path / "bad.json").write_text(json.dumps({**values, "features": ["fitness"]}))
+    with pytest.raises(CheckpointError, match="features"):
+        ConfidenceModel.load(tmp_path / "bad.json")
+
+
+@pytest.fixture(scope="module")
+def scene_registrar() -> Registrar:
+    return Registrar.from_checkpoint("7scenes", SCENE_REGISTRATION)
+
+
+def test_consecutive_validation_frames_are_confident_and_right(scene_registrar):
+    pairs = FramePairs(RGBDSequence.redkitchen(), 3, range(900, 1000))
+    for index in np.linspace(0, len(pairs) - 1, 6).astype(int):
+        item = pairs[int(index)]
+        result = scene_registrar.register(item["source"][::4], item["target"][::4])
+        rotation_error, translation_error = transform_errors(result.transformation, item["transform"])
+        assert rotation_error < 2.0 and translation_error < 0.05
+        assert result.confidence > 0.8, result.verification
+
+
+def test_clouds_of_two_different_places_are_not_confident(scene_registrar):
+    """A redkitchen validation frame against SUN3D frames (another building): no pose is right."""
+    kitchen, sun3d = RGBDSequence.redkitchen(), RGBDSequence.sun3d(1)
+    for i, j in ((850, 940), (900, 960), (950, 980)):
+        result = scene_registrar.register(kitchen.points(i)[::4], sun3d.points(j)[::4])
+        assert result.confidence < 0.5, result.verification
