@@ -13,7 +13,7 @@ PACKAGE = "genreg_ros"
 setup(
     name=PACKAGE,
     version="0.1.0",
-    packages=find_packages(include=["genreg_core", "genreg_core.*", "genreg_ros", "genreg_ros.*"]),
+    packages=find_packages(include=["genreg_core", "genreg_core.*", "genreg_bench", "genreg_bench.*", "genreg_ros", "genreg_ros.*"]),
     package_data={"genreg_core": ["weights/*.pt"]},
     data_files=[
         ("share/ament_index/resource_index/packages", [f"resource/{PACKAGE}"]),
@@ -34,7 +34,7 @@ setup(
         "console_scripts": [
             "register_node = genreg_ros.node:main",
             "genreg-train = genreg_core.training.cli:main",
-            "genreg-bench = genreg_core.bench.cli:main",
+            "genreg-bench = genreg_bench.cli:main",
             "genreg-make-bag = genreg_ros.bag.make_bag:main",
             "genreg-replay = genreg_ros.replay:main",
         ],

@@ -10,7 +10,7 @@ from the poses and the kidnap. Success: RE < 2 deg and TE < 0.3 m. Each pair run
     dedup+5%dup  the deduplicated scans with 5 % of their points duplicated (appended copies)
 
 GenReg runs with the node's scene profile (config/genreg.yaml: model 7scenes, GICP, PDSAC sample size 4);
-FPFH + RANSAC + ICP (`genreg_core.bench.baselines.fpfh_ransac_icp`, Open3D) on the `lidar` variant, with
+FPFH + RANSAC + ICP (`genreg_bench.baselines.fpfh_ransac_icp`, Open3D) on the `lidar` variant, with
 the RGB-D scene settings scaled to the scene (x3 room: 15 cm feature voxels; x6 street: 30 cm). A pair whose
 registration raises counts as a failure; the exceptions are counted in the table.
 
@@ -46,7 +46,7 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from genreg_core.bench.baselines import BaselineParams, fpfh_ransac_icp
+from genreg_bench.baselines import BaselineParams, fpfh_ransac_icp
 from genreg_core.config import from_dict
 from genreg_core.data.synthetic_lidar import (
     LidarSensor,

@@ -19,7 +19,7 @@ query and every numpy <-> torch conversion, so each time covers the same work: f
 tensors in, torch outputs out. Eager `encode` builds the graph itself. Eager inference also runs the
 encoder's other compiled kernels (`genreg_core.kernels`); traced and compiled graphs keep the torch forms.
 
-Method: one subprocess per thread count (`genreg_core.bench.cli.configure_threads` before torch loads,
+Method: one subprocess per thread count (`genreg_bench.cli.configure_threads` before torch loads,
 `retain_freed_memory`); the ONNX files are exported once, in a subprocess of their own, before them.
 Each option runs once on every pair for accuracy (also its warm-up, with one more warm-up call), then the
 timed calls are interleaved: per repeat and pair every option runs once, in a rotating order (bf16
@@ -258,7 +258,7 @@ def load_pairs(count: int) -> list[tuple[Any, Any]]:
     """`count` RPM-Net-style ModelNet40 unseen pairs (source, target), evenly spread over the test set."""
     import numpy as np
 
-    from genreg_core.bench.datasets import RPMNetPairs
+    from genreg_bench.datasets import RPMNetPairs
     from genreg_core.data import load_modelnet40
 
     dataset = RPMNetPairs(load_modelnet40("test", "unseen"), seed=0)
@@ -412,7 +412,7 @@ def measure_model(name: str, pairs: Sequence[tuple[Any, Any]], threads: int, arg
 def measure(args: argparse.Namespace) -> Figures:
     """Every model at one thread count (this process's only one)."""
     threads = args.threads[0]
-    from genreg_core.bench.cli import configure_threads
+    from genreg_bench.cli import configure_threads
 
     configure_threads(threads)  # before torch runs anything
     from genreg_core.memory import retain_freed_memory
@@ -508,7 +508,7 @@ def report(export: Figures, results: dict[int, Figures], load_start: float) -> N
 def main(argv: list[str] | None = None) -> int:
     args = parse_args(argv)
     if args.export_only:
-        from genreg_core.bench.cli import configure_threads
+        from genreg_bench.cli import configure_threads
 
         configure_threads(args.threads[0])
         status = export_all(args)

@@ -35,15 +35,15 @@ def main() -> int:
     p.add_argument("--batch", type=int, default=16)
     p.add_argument("--checkpoint", default=OBJECT_MODEL)
     args = p.parse_args()
-    from genreg_core.bench.cli import configure_threads
+    from genreg_bench.cli import configure_threads
 
     configure_threads(args.threads)
     import numpy as np
     from tqdm import tqdm
 
-    from genreg_core.bench.baselines import BaselineParams, fpfh_ransac_icp
-    from genreg_core.bench.datasets import BenchOptions, plan_suite
-    from genreg_core.bench.runner import thread_report
+    from genreg_bench.baselines import BaselineParams, fpfh_ransac_icp
+    from genreg_bench.datasets import BenchOptions, plan_suite
+    from genreg_bench.runner import thread_report
     from genreg_core.config import RefineConfig, RegistrationConfig
     from genreg_core.metrics import transform_errors
     from genreg_core.registration import Registrar

@@ -38,7 +38,7 @@ from typing import TYPE_CHECKING, Any
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 if TYPE_CHECKING:
-    from genreg_core.bench.baselines import BaselineFn, BaselineParams
+    from genreg_bench.baselines import BaselineFn, BaselineParams
     from genreg_core.registration import Registrar
 
 SCENE_FRAMES = (810, 800)  # redkitchen source -> target
@@ -109,7 +109,7 @@ def scene_figures(args: argparse.Namespace, threads: int) -> Figures:
     """The real pair: the API (plain, point-to-plane) and the baselines, and register_many throughput."""
     from dataclasses import replace
 
-    from genreg_core.bench.baselines import (
+    from genreg_bench.baselines import (
         BaselineParams,
         fpfh_ransac_icp,
         icp_point_to_plane,
@@ -141,8 +141,8 @@ def object_figures(args: argparse.Namespace, threads: int) -> Figures:
     """ModelNet40 unseen pairs: each object model through the API, FPFH + RANSAC, and throughputs."""
     import numpy as np
 
-    from genreg_core.bench.baselines import BaselineParams, fpfh_ransac
-    from genreg_core.bench.methods import measure_throughput
+    from genreg_bench.baselines import BaselineParams, fpfh_ransac
+    from genreg_bench.methods import measure_throughput
     from genreg_core.config import RegistrationConfig
     from genreg_core.data import ModelNetPairs, load_modelnet40
     from genreg_core.registration import Registrar
@@ -165,7 +165,7 @@ def object_figures(args: argparse.Namespace, threads: int) -> Figures:
 def measure(args: argparse.Namespace) -> Figures:
     """Every figure at one thread count (this process's only one)."""
     threads = args.threads[0]
-    from genreg_core.bench.cli import configure_threads
+    from genreg_bench.cli import configure_threads
 
     configure_threads(threads)  # before torch and Open3D run anything
     if not args.default_malloc:
@@ -174,7 +174,7 @@ def measure(args: argparse.Namespace) -> Figures:
         retain_freed_memory()
     import open3d as o3d
 
-    from genreg_core.bench.runner import thread_report
+    from genreg_bench.runner import thread_report
 
     o3d.utility.set_verbosity_level(o3d.utility.VerbosityLevel.Error)
     load = os.getloadavg()[0]

@@ -35,13 +35,13 @@ def main() -> int:
     p.add_argument("--pairs", type=int, default=150)
     p.add_argument("--threads", type=int, default=2)
     args = p.parse_args()
-    from genreg_core.bench.cli import configure_threads
+    from genreg_bench.cli import configure_threads
 
     configure_threads(args.threads)
     import numpy as np
     from tqdm import tqdm
 
-    from genreg_core.bench.datasets import RPMNetPairs
+    from genreg_bench.datasets import RPMNetPairs
     from genreg_core.config import RefineConfig, RegistrationConfig
     from genreg_core.data import ModelNetPairs, load_modelnet40
     from genreg_core.metrics import transform_errors

@@ -17,7 +17,7 @@ import argparse
 import numpy as np
 from tqdm import tqdm
 
-from genreg_core.bench.report import roc_auc
+from genreg_bench.report import roc_auc
 from genreg_core.config import SCENE_PDSAC, RefineConfig, RegistrationConfig
 from genreg_core.data import RGBDSequence
 from genreg_core.geometry import apply_transform, kidnap_motion

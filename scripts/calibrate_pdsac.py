@@ -43,13 +43,13 @@ def main() -> int:
     p.add_argument("--num-points", type=int, help="N for the checkpoints (statistics-free models run at any N)")
     p.add_argument("--crop-seed", type=int, default=2, help="crop: the pairs' seed (another set of training crops)")
     args = p.parse_args()
-    from genreg_core.bench.cli import configure_threads
+    from genreg_bench.cli import configure_threads
 
     configure_threads(args.threads)
     import numpy as np
     from tqdm import tqdm
 
-    from genreg_core.bench.datasets import RPMNetPairs
+    from genreg_bench.datasets import RPMNetPairs
     from genreg_core.config import PDSACConfig, RefineConfig, RegistrationConfig
     from genreg_core.data import ModelNetPairs, RGBDSequence, load_modelnet40
     from genreg_core.geometry import apply_transform, kidnap_motion

@@ -30,7 +30,7 @@ def main() -> int:
     p.add_argument("--threads", type=int, default=2)
     p.add_argument("--kind", choices=("crops", "objects"), default="crops", help="the pairs measured on")
     args = p.parse_args()
-    from genreg_core.bench.cli import configure_threads
+    from genreg_bench.cli import configure_threads
 
     configure_threads(args.threads)
     import numpy as np
@@ -38,7 +38,7 @@ def main() -> int:
     from torch import nn
     from tqdm import tqdm
 
-    from genreg_core.bench.datasets import RPMNetPairs
+    from genreg_bench.datasets import RPMNetPairs
     from genreg_core.checkpoint import load_checkpoint, save_checkpoint
     from genreg_core.config import RefineConfig, RegistrationConfig
     from genreg_core.data import ModelNetPairs, load_modelnet40

@@ -25,7 +25,7 @@ def main() -> int:
     args = p.parse_args()
     import torch
 
-    from genreg_core.bench.datasets import RPMNetPairs
+    from genreg_bench.datasets import RPMNetPairs
     from genreg_core.checkpoint import load_checkpoint, save_checkpoint
     from genreg_core.data import load_modelnet40
     from genreg_core.model.fold import widen

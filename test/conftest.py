@@ -87,7 +87,7 @@ def run_bench_cli():
     import subprocess
     import sys
 
-    from genreg_core.bench.datasets import DATASETS, BenchOptions
+    from genreg_bench.datasets import DATASETS, BenchOptions
     from genreg_core.errors import DataNotFoundError
 
     try:
@@ -97,7 +97,7 @@ def run_bench_cli():
 
     def run(args: list[str], out: Path, timeout: float) -> tuple[subprocess.CompletedProcess, dict]:
         env = {k: v for k, v in os.environ.items() if not k.startswith("OMP_")}
-        cmd = [sys.executable, "-m", "genreg_core.bench.cli", *args, "--out", str(out)]
+        cmd = [sys.executable, "-m", "genreg_bench.cli", *args, "--out", str(out)]
         proc = subprocess.run(cmd, check=False, env=env, capture_output=True, text=True, timeout=timeout,
                               cwd=Path(__file__).resolve().parent.parent)
         assert proc.returncode == 0, proc.stderr[-3000:]

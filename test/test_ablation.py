@@ -13,8 +13,8 @@ import pytest
 import torch
 from scipy.spatial.transform import Rotation
 
-from genreg_core.bench import report
-from genreg_core.bench.ablation import (
+from genreg_bench import report
+from genreg_bench.ablation import (
     BACKBONE_TITLE,
     POSE_SOLVER_TITLE,
     Correspondences,
@@ -22,7 +22,7 @@ from genreg_core.bench.ablation import (
     generation_errors,
     pose_solvers,
 )
-from genreg_core.bench.datasets import DATASETS, BenchOptions
+from genreg_bench.datasets import DATASETS, BenchOptions
 from genreg_core.checkpoint import save_checkpoint
 from genreg_core.config import OBJECT_MODEL, ModelConfig, PDSACConfig, RegistrationConfig
 from genreg_core.errors import DataNotFoundError

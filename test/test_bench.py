@@ -11,10 +11,10 @@ import pytest
 from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
-from genreg_core.bench import report
-from genreg_core.bench.baselines import BASELINES, BaselineParams
-from genreg_core.bench.datasets import DATASETS, BenchOptions, PairTruth, Suite, pair_truth, select_indices
-from genreg_core.bench.runner import run_benchmark
+from genreg_bench import report
+from genreg_bench.baselines import BASELINES, BaselineParams
+from genreg_bench.datasets import DATASETS, BenchOptions, PairTruth, Suite, pair_truth, select_indices
+from genreg_bench.runner import run_benchmark
 from genreg_core.errors import DataNotFoundError
 from genreg_core.metrics import transform_errors
 
@@ -290,7 +290,7 @@ def test_symmetric_means_and_overlap_bins_on_hand_made_records():
 
 
 def test_partial_suite_plan_and_dataset_checks():
-    from genreg_core.bench.datasets import PARTIAL_METHODS, SUITES, plan_suite, resolve_suite
+    from genreg_bench.datasets import PARTIAL_METHODS, SUITES, plan_suite, resolve_suite
 
     suite = SUITES["partial"]
     assert set(suite.counts) == {"modelnet-rpmnet-seen", "modelnet-rpmnet-unseen", "redkitchen-kidnap-gap30",
@@ -304,7 +304,7 @@ def test_partial_suite_plan_and_dataset_checks():
 
 
 def test_report_writes_overlap_table_and_plot(tmp_path):
-    from genreg_core.bench.runner import BenchRun
+    from genreg_bench.runner import BenchRun
 
     recs = [_rec(m, re, 0.01, 0.1, 0.01, re < 2, overlap=ov, pair=k)
             for k, ov in enumerate((0.3, 0.5, 0.9)) for m, re in (("genreg", 3 * ov), ("icp-p2plane", 5.0))]
@@ -342,8 +342,8 @@ def test_partial_suite_cli_on_object_pairs(tmp_path, run_bench_cli):
 def test_pairs_flag_sets_every_dataset_count_and_keeps_the_suite_name():
     """`--pairs N` replaces the suite's per-dataset counts (an evenly spread N of each, all when a set holds
     fewer); the report keeps the suite's name and its methods."""
-    from genreg_core.bench.cli import parse_args
-    from genreg_core.bench.datasets import SUITES, resolve_suite
+    from genreg_bench.cli import parse_args
+    from genreg_bench.datasets import SUITES, resolve_suite
 
     args = parse_args(["--suite", "partial", "--pairs", "48", "--out", "x"])
     suite = SUITES[args.suite].with_pairs(args.suite, args.pairs)

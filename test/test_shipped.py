@@ -203,7 +203,7 @@ def test_confidence_ranks_crop_successes_above_failures_and_is_never_confident_w
     shipped partial model and point-to-point ICP, against the known transforms: the ROC AUC of success
     (RE < 5 deg) is at least the issue's 0.9 (measured 0.997), and no pair with confidence >= 0.5 is off
     by more than 10 deg (the issue's "confident failure")."""
-    from genreg_core.bench.report import roc_auc
+    from genreg_bench.report import roc_auc
     from genreg_core.data.modelnet40 import rpmnet_crop_pair
 
     shapes = load_modelnet40("test", "unseen")

@@ -94,10 +94,10 @@ def main(argv: list[str] | None = None) -> int:
     import open3d as o3d
 
     o3d.utility.set_verbosity_level(o3d.utility.VerbosityLevel.Error)  # RANSAC's mutual-filter notes
-    from genreg_core.bench.datasets import DATASETS, OBJECT, SCENE, SUITES, BenchOptions
-    from genreg_core.bench.methods import DEFAULT_CHECKPOINTS
-    from genreg_core.bench.report import load_run, write_report
-    from genreg_core.bench.runner import run_benchmark
+    from genreg_bench.datasets import DATASETS, OBJECT, SCENE, SUITES, BenchOptions
+    from genreg_bench.methods import DEFAULT_CHECKPOINTS
+    from genreg_bench.report import load_run, write_report
+    from genreg_bench.runner import run_benchmark
 
     if args.datasets and set(args.datasets) - set(DATASETS):
         print(f"unknown datasets {sorted(set(args.datasets) - set(DATASETS))}; known: {list(DATASETS)}",
@@ -119,7 +119,7 @@ def main(argv: list[str] | None = None) -> int:
 
     try:
         if args.ablation:
-            from genreg_core.bench.ablation import DEFAULT_BACKBONES, run_ablations
+            from genreg_bench.ablation import DEFAULT_BACKBONES, run_ablations
 
             backbones = dict(b.split("=", 1) for b in args.backbones) if args.backbones else dict(DEFAULT_BACKBONES)
             if args.paper_checkpoint:

@@ -21,9 +21,9 @@ from typing import Any
 import numpy as np
 from scipy.stats import mannwhitneyu
 
-from genreg_core.bench.datasets import SYMMETRIC_CATEGORIES
-from genreg_core.bench.methods import ALL_METHODS, GENREG_METHODS
-from genreg_core.bench.runner import BenchRun
+from genreg_bench.datasets import SYMMETRIC_CATEGORIES
+from genreg_bench.methods import ALL_METHODS, GENREG_METHODS
+from genreg_bench.runner import BenchRun
 
 DEFAULT_CONFIDENCE_THRESHOLDS = (0.5, 0.9)
 OVERLAP_BINS = (0.0, 0.2, 0.4, 0.6, 0.8, 1.0)  # success-by-overlap bins (the last one closed)

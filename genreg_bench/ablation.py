@@ -46,7 +46,7 @@ import open3d as o3d
 import torch
 from tqdm import tqdm
 
-from genreg_core.bench.datasets import (
+from genreg_bench.datasets import (
     OBJECT,
     BenchOptions,
     DatasetSpec,
@@ -55,8 +55,8 @@ from genreg_core.bench.datasets import (
     pair_truth,
     plan_suite,
 )
-from genreg_core.bench.methods import DEFAULT_CHECKPOINTS, MethodOutput, load_each
-from genreg_core.bench.runner import (
+from genreg_bench.methods import DEFAULT_CHECKPOINTS, MethodOutput, load_each
+from genreg_bench.runner import (
     BenchRun,
     dataset_info,
     failure_fields,

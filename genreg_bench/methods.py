@@ -20,8 +20,8 @@ from typing import Any, TypeVar
 import numpy as np
 import torch
 
-from genreg_core.bench.baselines import BASELINES, BaselineFn, BaselineParams, identity
-from genreg_core.bench.datasets import OBJECT, SCENE
+from genreg_bench.baselines import BASELINES, BaselineFn, BaselineParams, identity
+from genreg_bench.datasets import OBJECT, SCENE
 from genreg_core.config import (
     OBJECT_MODEL,
     SCENE_MODEL,

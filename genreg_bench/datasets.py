@@ -36,7 +36,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 from torch.utils.data import ConcatDataset, Dataset
 
-from genreg_core.bench.baselines import BaselineParams
+from genreg_bench.baselines import BaselineParams
 from genreg_core.data import (
     REDKITCHEN_VAL_FRAMES,
     FMRPairs,

@@ -28,7 +28,7 @@ from typing import Any
 import torch
 from tqdm import tqdm
 
-from genreg_core.bench.datasets import (
+from genreg_bench.datasets import (
     SCENE,
     BenchOptions,
     DatasetSpec,
@@ -38,7 +38,7 @@ from genreg_core.bench.datasets import (
     plan_suite,
     resolve_suite,
 )
-from genreg_core.bench.methods import (
+from genreg_bench.methods import (
     ALL_METHODS,
     DEFAULT_CHECKPOINTS,
     DEFAULT_METHODS,
