@@ -351,3 +351,42 @@ def pdsac_bidirectional(
     else:
         inliers = residuals(T, src, dst) < cfg.tau
     return T, res_a, res_b, inliers
+
+
+MODE_TRANSLATION = 0.1  # `distinct_modes`: translations this far apart (normalised frame: the unit box) differ
+
+
+@torch.no_grad()
+def distinct_modes(T: torch.Tensor, res_a: PDSACResult, res_b: PDSACResult, src: torch.Tensor, dst: torch.Tensor,
+                   cfg: PDSACConfig, weights: torch.Tensor | None = None) -> torch.Tensor:
+    """Up to `cfg.modes` - 1 other modes of the hypotheses of both directions (B, M, 4, 4), b ~ T a: in order
+    of their PDSAC scores, each hypothesis whose rotation differs by more than `cfg.mode_separation` deg, or
+    its translation by more than `MODE_TRANSLATION`, from `T` (B, 4, 4) and every mode kept before it, refit
+    on its inliers among the union correspondences `src`, `dst` (B, 2N, 3) as the winner is (`refit_on_inliers`
+    with the tightening rounds). Slots without a distinct mode repeat `T`."""
+    B, count = T.shape[0], cfg.modes - 1
+    modes = T[:, None].repeat(1, max(count, 0), 1, 1)
+    if count <= 0:
+        return modes
+    hypotheses = torch.cat([res_a.hypotheses, invert_transform(res_b.hypotheses)], dim=1)
+    order = torch.cat([res_a.scores, res_b.scores], dim=1).argsort(dim=1)
+    cos_limit = float(np.cos(np.radians(cfg.mode_separation)))
+    for b in range(B):
+        H = hypotheses[b, order[b]].to(T.dtype)
+        kept = [T[b]]
+        for _ in range(count):
+            R, t = torch.stack(kept)[:, :3, :3], torch.stack(kept)[:, :3, 3]
+            # cos of the angle between H's rotation and each kept one: (trace(R_k^T R_h) - 1) / 2
+            cos = (torch.einsum("kij,hij->hk", R, H[:, :3, :3]) - 1) / 2
+            near = (cos > cos_limit) & (torch.cdist(H[:, :3, 3], t) < MODE_TRANSLATION)
+            far = ~near.any(dim=1)
+            if not far.any():
+                break
+            kept.append(H[int(far.nonzero()[0])])
+        if len(kept) > 1:
+            fresh = torch.stack(kept[1:])
+            rows = (src[b: b + 1].expand(len(fresh), -1, -1), dst[b: b + 1].expand(len(fresh), -1, -1))
+            w = None if weights is None else weights[b: b + 1].expand(len(fresh), -1)
+            modes[b, : len(fresh)] = refit_on_inliers(fresh, *rows, cfg.tau, weights=w,
+                                                      tightening=cfg.refit_tightening)[0].to(T.dtype)
+    return modes

@@ -23,19 +23,25 @@ from __future__ import annotations
 
 import os
 import time
-from collections.abc import Iterator, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 import torch
 
 from genreg_core.checkpoint import load_checkpoint, resolve_checkpoint
 from genreg_core.confidence import FEATURES, SPACINGS, ConfidenceModel, features, load_beside
-from genreg_core.config import OBJECT_MODEL, PDSACConfig, RegistrationConfig
+from genreg_core.config import OBJECT_MODEL, PDSACConfig, RefineConfig, RegistrationConfig
 from genreg_core.fallback import fallback
 from genreg_core.geometry import apply_transform
-from genreg_core.pdsac import pdsac_bidirectional, seeded_generator, union_inlier_share
+from genreg_core.pdsac import (
+    distinct_modes,
+    pdsac_bidirectional,
+    seeded_generator,
+    union_correspondences,
+    union_inlier_share,
+)
 from genreg_core.prepare import PreparedPair, model_frame_config, prepare_pair
 from genreg_core.refine import guard_icp, refine
 from genreg_core.score import (
@@ -113,12 +119,41 @@ class Estimate:
     source_generated: torch.Tensor  # A_g (B, N, 3), in b's frame
     target_generated: torch.Tensor  # B_g (B, N, 3), in a's frame
     inliers: torch.Tensor  # (B, 2N) bool: union correspondences within PDSAC's threshold of `transform`
+    modes: torch.Tensor  # (B, modes - 1, 4, 4): other distinct hypotheses, refit (`pdsac.distinct_modes`)
 
     @staticmethod
     def cat(parts: Sequence[Estimate]) -> Estimate:
         """One batch from several."""
         return Estimate(*(torch.cat([getattr(e, f) for e in parts]) for f in
-                          ("transform", "source_generated", "target_generated", "inliers")))
+                          ("transform", "source_generated", "target_generated", "inliers", "modes")))
+
+
+COARSE_POINTS = 1000  # `verified_mode` refines the other modes on this many source points first
+COARSE_ITERATIONS = 10  # ... with this many ICP iterations
+
+
+def verified_mode(p: PreparedPair, target: object, T_best: np.ndarray, start: np.ndarray, modes: np.ndarray,
+                  refine_cfg: RefineConfig, verified: Callable[[np.ndarray], float], below: float = 1.0) -> np.ndarray:
+    """GenReg's refined estimate `T_best` or another PDSAC mode (`pdsac.distinct_modes`, (K, 4, 4)), whichever
+    `verified` scores higher (the calibrated probability of being right; without a calibration, the share of
+    the source within one target spacing). Only when `T_best` scores below `below`: a confident estimate
+    costs nothing more. Each mode other than `T_best`'s `start` is refined coarsely (`COARSE_POINTS` source
+    points, `COARSE_ITERATIONS` iterations), the best of them fully; it replaces `T_best` only if it then
+    verifies better. Without refinement the modes are compared as they are."""
+    best_score = verified(T_best)
+    if not len(modes) or best_score >= below:
+        return T_best
+    refining = refine_cfg.method != "none"
+    coarse_src = p.dense_src[:: max(1, len(p.dense_src) // COARSE_POINTS)]
+    coarse_cfg = replace(refine_cfg, max_iterations=min(COARSE_ITERATIONS, refine_cfg.max_iterations))
+    distinct = [M for k, M in enumerate(modes) if not any(np.array_equal(M, m) for m in [start, *modes[:k]])]
+    coarse = [refine(coarse_src, target, M, coarse_cfg) if refining else M for M in distinct]
+    scores = [verified(T) for T in coarse]
+    if not scores or max(scores) <= best_score:
+        return T_best
+    rival = coarse[int(np.argmax(scores))]
+    rival = refine(p.dense_src, target, rival, refine_cfg) if refining else rival
+    return rival if verified(rival) > best_score else T_best
 
 
 class Registrar:
@@ -193,12 +228,16 @@ class Registrar:
             match = self.model.interact(enc)  # 3. interact
             out = self.model.generate(enc, match)  # 4. generate
             t1 = time.perf_counter()
-            T, _, _, inliers = pdsac_bidirectional(  # 5. PDSAC
+            T, res_a, res_b, inliers = pdsac_bidirectional(  # 5. PDSAC
                 a, out.source_generated, b, out.target_generated, pdsac, generator, out.overlap())
+            overlap = out.overlap()
+            modes = distinct_modes(T, res_a, res_b, *union_correspondences(a, out.source_generated, b,
+                                                                           out.target_generated),
+                                   pdsac, None if overlap is None else torch.cat(overlap, dim=1))
         if timings is not None:
             timings["network"] = timings.get("network", 0.0) + t1 - t0
             timings["pdsac"] = timings.get("pdsac", 0.0) + time.perf_counter() - t1
-        return Estimate(T, out.source_generated, out.target_generated, inliers)
+        return Estimate(T, out.source_generated, out.target_generated, inliers, modes)
 
     def refine_and_score(self, p: PreparedPair, est: Estimate, k: int, shared: dict[str, float]
                          ) -> RegistrationResult:
@@ -219,14 +258,26 @@ class Registrar:
         def tight(T_r: np.ndarray) -> float:  # share of the source within one target spacing
             return overlap_fitness(p.dense_src, p.target_index, T_r, tight_distance)[0]
 
-        fitness, rmse_n = overlap_fitness(p.dense_src, p.target_index, T_n, distance)  # 7. score
-        start, rescore = "genreg", False
-
         def agreement(T_r: np.ndarray) -> float:  # inlier ratio of another pose under GenReg's correspondences
             T_k = torch.from_numpy(T_r)[None].to(est.source_generated.dtype)
             a, b = torch.from_numpy(p.a)[None], torch.from_numpy(p.b)[None]
             return float(union_inlier_share(T_k, a, est.source_generated[k: k + 1], b,
                                             est.target_generated[k: k + 1], cfg.pdsac.tau)[0])
+
+        def verified(T_r: np.ndarray) -> float:  # the calibrated probability (no calibration: the tight share)
+            if self.calibration is None:
+                return tight(T_r)
+            shares = overlap_shares(p.dense_src, p.target_index, T_r, np.multiply(SPACINGS, p.target_index.spacing))
+            return self.calibration.probability(features(shares, agreement(T_r), 1.0))
+
+        modes = est.modes[k].double().cpu().numpy() if p.init is None else np.empty((0, 4, 4))  # a guess: local
+        mode = verified_mode(p, target, T_n, est.transform[k].double().cpu().numpy(), modes, cfg.refine,  # 6. modes
+                             verified, cfg.pdsac.modes_below)
+        if mode is not T_n:
+            T_n, inlier_ratio = mode, agreement(mode)
+
+        fitness, rmse_n = overlap_fitness(p.dense_src, p.target_index, T_n, distance)  # 7. score
+        start, rescore = "genreg", False
 
         def closer(T_a: np.ndarray, T_b: np.ndarray, margin: float = 0.0) -> bool:
             """Whether T_a puts a larger share (by more than `margin`) of the source within one spacing (not
