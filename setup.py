@@ -14,7 +14,7 @@ setup(
     name=PACKAGE,
     version="0.1.0",
     packages=find_packages(include=["genreg_core", "genreg_core.*", "genreg_bench", "genreg_bench.*", "genreg_ros", "genreg_ros.*"]),
-    package_data={"genreg_core": ["weights/*.pt"]},
+    package_data={"genreg_core": ["weights/*.pt", "weights/*.confidence.json"]},
     data_files=[
         ("share/ament_index/resource_index/packages", [f"resource/{PACKAGE}"]),
         (f"share/{PACKAGE}", ["package.xml"]),
