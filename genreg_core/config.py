@@ -223,7 +223,8 @@ class RefineConfig:
                                                  "5 % of the source's robust extent.", low=0.0, high=1e4)
     num_points: int = setting(5000, "Points per cloud used by ICP and the fitness measure.", low=16,
                               high=1_000_000)
-    guard_below: float = setting(0.4, "Below this confidence ICP also runs from the initial guess; the "
+    guard_below: float = setting(0.4, "Below this overlap score (the geometric mean of fitness, tight fitness and "
+                                 "inlier ratio) ICP also runs from the initial guess; the "
                                  "start with more source points within one target spacing wins (0: off).",
                                  low=0.0, high=1.0)
     guard_distance: float = setting(0.0, "ICP correspondence distance of the guard's run from the initial "
@@ -245,7 +246,8 @@ class FallbackConfig:
 
     method: str = setting("none", "Fallback below `below` confidence: none or fpfh_ransac (Open3D).",
                           choices=("none", "fpfh_ransac"))
-    below: float = setting(0.3, "Run the fallback when the confidence stays below this.", low=0.0, high=1.0)
+    below: float = setting(0.3, "Run the fallback when the overlap score (as refine.guard_below) stays below this.",
+                           low=0.0, high=1.0)
     voxel_size: float = setting(0.0, "Feature voxel, fraction of the extent (0: the refinement points as given).",
                                 low=0.0, high=1.0)
     normal_radius: float = setting(0.1, "Normal radius, fraction of the extent.", low=1e-4, high=1.0)

@@ -175,11 +175,13 @@ class NodeConfig:
     use_last_result_as_guess: bool = setting(False, "Start each registration from the previous result (tracking).")
     min_fitness: float = setting(0.0, "Results with lower fitness are counted as failed and not published.",
                                  low=0.0, high=1.0)
-    # chosen on redkitchen training pairs by scripts/calibrate_min_confidence.py (GICP, the scene model
-    # 7scenes): the largest multiple of 0.05 at least 0.05 below the lowest confidence of a success (MODEL_CARD.md)
-    min_confidence: float = setting(0.10, "Results with lower confidence are not published (counted as "
-                                    "failed.low_confidence_rejected).", low=0.0, high=1.0)
-    warn_confidence: float = setting(0.3, "Results with lower confidence are published, with a throttled "
+    # the confidence is the calibrated probability that the pose is right (RegistrationResult.confidence):
+    # publish what is more likely right than wrong, and warn below 80 %
+    min_confidence: float = setting(0.5, "Results whose confidence (the calibrated probability that the pose is right) "
+                                    "is lower are not published (counted as failed.low_confidence_rejected). A "
+                                    "checkpoint without a calibration gives an uncalibrated score: lower it there.",
+                                    low=0.0, high=1.0)
+    warn_confidence: float = setting(0.8, "Results with lower confidence are published, with a throttled "
                                      "warning, a low_confidence count and a WARN diagnostics status.",
                                      low=0.0, high=1.0)
     publish_generated: bool = setting(False, "Also publish the generated source cloud (debugging).")
