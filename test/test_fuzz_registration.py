@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from hypothesis import HealthCheck, given, settings
+from hypothesis import HealthCheck, event, given, settings
 from hypothesis import strategies as st
 from scipy.spatial.transform import Rotation
 
@@ -97,8 +97,10 @@ def check(result) -> None:
 def test_only_named_errors_and_finite_results(registrars, source, target, guess, which):
     try:
         result = registrars[which].register(source, target, initial_guess=guess)
-    except GenRegError:
+    except GenRegError as exc:
+        event(f"raised {type(exc).__name__}")  # the tallies show in --hypothesis-show-statistics
         return
+    event("registered")
     check(result)
 
 
@@ -115,5 +117,7 @@ def test_repeated_points_far_from_the_origin_register(registrars, seed, shape, o
         result = registrars[1].register((points + offset).astype(np.float32), (moved + offset).astype(np.float32))
     except GenRegError as exc:
         assert "distinct" in str(exc)  # only a cloud with too few distinct points may be refused
+        event("too few distinct points")
         return
+    event("registered")
     check(result)
