@@ -1,6 +1,7 @@
-"""Shared fixtures. ROS: every rclpy process of a test session stays on loopback
-(ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST) in its own random ROS_DOMAIN_ID, and ROS tests put their topics
-under a random namespace, so parallel test runs on one machine never see each other's messages.
+"""Shared fixtures. ROS: every rclpy process of a test run stays on loopback
+(ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST) in the ROS_DOMAIN_ID of the environment, else a random one
+(`genreg_ros.environment.ros_environment`), and ROS tests put their topics under a random namespace, so
+parallel test runs on one machine never see each other's messages.
 """
 
 from __future__ import annotations
@@ -10,6 +11,8 @@ import secrets
 from pathlib import Path
 
 import pytest
+
+from genreg_ros.environment import FASTDDS_PROFILE, ros_environment
 
 REPO = Path(__file__).resolve().parent.parent
 
@@ -22,20 +25,11 @@ try:  # property-based tests: "ci" (the default) keeps them short, HYPOTHESIS_PR
 except ImportError:  # hypothesis missing: only the property-based tests need it (they skip)
     pass
 
-FASTDDS_PROFILE = REPO / "config" / "fastdds_large_clouds.xml"
-
-
 @pytest.fixture(scope="session", autouse=True)
 def ros_env() -> dict[str, str]:
-    """Set the ROS discovery variables for this process and every subprocess it starts."""
-    env = {
-        "ROS_AUTOMATIC_DISCOVERY_RANGE": "LOCALHOST",
-        "ROS_DOMAIN_ID": str(1 + secrets.randbelow(100)),  # 1..100: valid Fast DDS ports on Linux
-        "RCUTILS_COLORIZED_OUTPUT": "0",
-        # The shipped large-cloud profile, as users are told to run it (read when the first DDS
-        # participant of a process is created).
-        "FASTDDS_DEFAULT_PROFILES_FILE": str(FASTDDS_PROFILE),
-    }
+    """Set the ROS discovery variables for this process and every subprocess it starts; always the shipped
+    large-cloud Fast DDS profile, as users are told to run it."""
+    env = ros_environment(profile=FASTDDS_PROFILE)
     saved = {k: os.environ.get(k) for k in env}
     os.environ.update(env)
     yield env

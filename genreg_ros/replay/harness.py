@@ -15,13 +15,13 @@ Drops: every pair without output gets a reason: a malformed bag message (found b
 reason the node counted on /diagnostics (superseded, failed.*, ...), else "lost".
 
 Every rclpy process needs ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST, the same ROS_DOMAIN_ID and the Fast
-DDS profile config/fastdds_large_clouds.xml; the harness sets them for itself and the node it starts.
+DDS profile config/fastdds_large_clouds.xml (`genreg_ros.environment`); the harness sets them for itself and
+the node it starts. `Client` is the one rclpy client of the replay and of scripts/bench_node.py.
 """
 
 from __future__ import annotations
 
 import os
-import secrets
 import signal
 import struct
 import subprocess
@@ -38,6 +38,7 @@ import yaml
 
 from genreg_ros.bag.reader import BagData, read_bag
 from genreg_ros.conversions import msg_to_matrix, split_ns, stamp_ns
+from genreg_ros.environment import ros_environment
 from genreg_ros.replay.report import format_summary, write_report
 from genreg_ros.replay.scoring import (
     ICP_TEXT,
@@ -51,7 +52,6 @@ from genreg_ros.replay.scoring import (
 
 REPO = Path(__file__).resolve().parents[2]
 DEFAULT_PARAMS = REPO / "config" / "genreg.yaml"
-FASTDDS_PROFILE = REPO / "config" / "fastdds_large_clouds.xml"
 NODE_NAME = "register_node"
 RELAY_SLOP = 0.001  # s, sync.slop given to a node started here (the relay's pairs have equal stamps)
 
@@ -92,16 +92,11 @@ class ReplayResult:
 
 # ----------------------------------------------------------------------------- environment and node process
 def ros_env(random_domain: bool = True) -> dict[str, str]:
-    """The discovery/transport variables every rclpy process of a replay needs (set in os.environ).
+    """`genreg_ros.environment.ros_environment`, set in os.environ for this process and the node it starts.
 
     ROS_DOMAIN_ID is kept if set; otherwise a random one in 1..100 (random_domain, for a node started here)
     or ROS's default 0 (to reach a running node)."""
-    env = {
-        "ROS_AUTOMATIC_DISCOVERY_RANGE": "LOCALHOST",
-        "ROS_DOMAIN_ID": os.environ.get("ROS_DOMAIN_ID") or (str(1 + secrets.randbelow(100)) if random_domain else "0"),
-        "FASTDDS_DEFAULT_PROFILES_FILE": os.environ.get("FASTDDS_DEFAULT_PROFILES_FILE", str(FASTDDS_PROFILE)),
-        "RCUTILS_COLORIZED_OUTPUT": "0",
-    }
+    env = ros_environment(None if random_domain or os.environ.get("ROS_DOMAIN_ID") else 0)
     os.environ.update(env)
     return env
 
@@ -174,7 +169,10 @@ def _topic(namespace: str, name: str) -> str:
 
 
 @dataclass
-class _Output:
+class Output:
+    """One output of the node as the client recorded it: arrival (time.monotonic()), header frame, and the
+    transform's child frame and matrix or the aligned cloud's point count and field names."""
+
     received: float
     frame_id: str
     child_frame_id: str = ""
@@ -186,10 +184,16 @@ class _Output:
 class Client:
     """The harness's rclpy node: publishes pairs, records the node's outputs and /diagnostics.
 
-    Runs its own context and executor thread; outputs are keyed by header stamp (ns).
+    Runs its own context and executor thread; outputs are keyed by header stamp (ns): `transforms`,
+    `aligned` (unless `aligned` is False: no 300k-point cloud decoded here) and, with `status`, the
+    `registration_status` values of each result. `diags`: (arrival, values) of the node's /diagnostics
+    status, the last `keep_diagnostics` (None: all). The cloud publishers use `input_reliability` and
+    `input_depth` (a soak publishes best effort, like a sensor driver).
     """
 
-    def __init__(self, namespace: str, output_reliability: str = "reliable") -> None:
+    def __init__(self, namespace: str, output_reliability: str = "reliable", *, input_reliability: str = "reliable",
+                 input_depth: int = 10, aligned: bool = True, status: bool = False,
+                 keep_diagnostics: int | None = 50, name: str = "genreg_replay") -> None:
         import rclpy
         from diagnostic_msgs.msg import DiagnosticArray
         from geometry_msgs.msg import TransformStamped
@@ -202,20 +206,25 @@ class Client:
         self._rclpy = rclpy
         self.ctx = Context()
         rclpy.init(args=[], context=self.ctx)
-        self.node = Node("genreg_replay", context=self.ctx)
+        self.node = Node(name, context=self.ctx)
         self.fqn = _topic(namespace, NODE_NAME)
-        pub_qos = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
+        pub_qos = QoSProfile(depth=input_depth, reliability=ReliabilityPolicy[input_reliability.upper()])
         out_qos = QoSProfile(depth=50, reliability=ReliabilityPolicy[output_reliability.upper()])
         self.pub_source = self.node.create_publisher(PointCloud2, _topic(namespace, "source_cloud"), pub_qos)
         self.pub_target = self.node.create_publisher(PointCloud2, _topic(namespace, "target_cloud"), pub_qos)
         self.lock = threading.Lock()
-        self.transforms: dict[int, _Output] = {}
-        self.aligned: dict[int, _Output] = {}
+        self.transforms: dict[int, Output] = {}
+        self.aligned: dict[int, Output] = {}
+        self.status: dict[int, dict[str, str]] = {}
         self.diags: list[tuple[float, dict[str, str]]] = []
+        self.keep_diagnostics = keep_diagnostics
         self.sub_tf = self.node.create_subscription(
             TransformStamped, _topic(namespace, "transform"), self._on_transform, out_qos)
         self.sub_aligned = self.node.create_subscription(
-            PointCloud2, _topic(namespace, "aligned_cloud"), self._on_aligned, out_qos)
+            PointCloud2, _topic(namespace, "aligned_cloud"), self._on_aligned, out_qos) if aligned else None
+        if status:
+            self.node.create_subscription(
+                DiagnosticArray, _topic(namespace, "registration_status"), self._on_status, out_qos)
         self.sub_diag = self.node.create_subscription(DiagnosticArray, "/diagnostics", self._on_diag, 20)
         self.executor = SingleThreadedExecutor(context=self.ctx)
         self.executor.add_node(self.node)
@@ -224,15 +233,21 @@ class Client:
 
     def _on_transform(self, msg: Any) -> None:
         now = time.monotonic()
-        out = _Output(now, msg.header.frame_id, msg.child_frame_id, msg_to_matrix(msg))
+        out = Output(now, msg.header.frame_id, msg.child_frame_id, msg_to_matrix(msg))
         with self.lock:
             self.transforms[stamp_ns(msg.header)] = out
 
     def _on_aligned(self, msg: Any) -> None:
-        out = _Output(time.monotonic(), msg.header.frame_id, num_points=int(msg.width) * int(msg.height),
+        out = Output(time.monotonic(), msg.header.frame_id, num_points=int(msg.width) * int(msg.height),
                       fields=tuple(f.name for f in msg.fields))
         with self.lock:
             self.aligned[stamp_ns(msg.header)] = out
+
+    def _on_status(self, msg: Any) -> None:
+        for status in msg.status:
+            if status.hardware_id == self.fqn:
+                with self.lock:
+                    self.status[stamp_ns(msg.header)] = {kv.key: kv.value for kv in status.values}
 
     def _on_diag(self, msg: Any) -> None:
         now = time.monotonic()
@@ -240,22 +255,39 @@ class Client:
             if status.hardware_id == self.fqn:
                 with self.lock:
                     self.diags.append((now, {kv.key: kv.value for kv in status.values}))
-                    del self.diags[:-50]
+                    if self.keep_diagnostics is not None:
+                        del self.diags[:-self.keep_diagnostics]
+
+    def diagnostics(self, newer_than: float, timeout: float) -> dict[str, str] | None:
+        """The values of the first /diagnostics status received after `newer_than` (monotonic), waiting up
+        to `timeout` s; None if none came."""
+        deadline = time.monotonic() + timeout
+        while True:
+            with self.lock:
+                fresh = next((d for t, d in self.diags if t > newer_than), None)
+            if fresh is not None or time.monotonic() >= deadline:
+                return fresh
+            time.sleep(0.02)
+
+    def latest_diagnostics(self) -> dict[str, str] | None:
+        """The values of the last /diagnostics status received (None: none yet)."""
+        with self.lock:
+            return self.diags[-1][1] if self.diags else None
 
     def counters(self, newer_than: float, timeout: float) -> dict[str, int] | None:
         """The node's counters from the first /diagnostics received after `newer_than` (monotonic)."""
-        deadline = time.monotonic() + timeout
-        while time.monotonic() < deadline:
-            with self.lock:
-                fresh = [d for t, d in self.diags if t > newer_than]
-            if fresh:
-                return _counts(fresh[0])
-            time.sleep(0.02)
-        return None
+        values = self.diagnostics(newer_than, timeout)
+        return None if values is None else node_counters(values)
+
+    def latest_counters(self) -> dict[str, int] | None:
+        """The node's counters from the last /diagnostics received (None: none yet)."""
+        values = self.latest_diagnostics()
+        return None if values is None else node_counters(values)
 
     def matched(self) -> bool:
         return (self.pub_source.get_subscription_count() > 0 and self.pub_target.get_subscription_count() > 0
-                and self.sub_tf.get_publisher_count() > 0 and self.sub_aligned.get_publisher_count() > 0)
+                and self.sub_tf.get_publisher_count() > 0
+                and (self.sub_aligned is None or self.sub_aligned.get_publisher_count() > 0))
 
     def clear_outputs(self) -> None:
         with self.lock:
@@ -269,7 +301,8 @@ class Client:
         self._thread.join(timeout=2.0)
 
 
-def _counts(values: dict[str, str]) -> dict[str, int]:
+def node_counters(values: dict[str, str]) -> dict[str, int]:
+    """The counters (registered, paired, received.*, dropped.*, failed.*) of a /diagnostics status's values."""
     out = {}
     for key, value in values.items():
         if key in ("registered", "paired") or key.startswith(("dropped.", "failed.", "received.")):
@@ -280,7 +313,8 @@ def _counts(values: dict[str, str]) -> dict[str, int]:
     return out
 
 
-def _delta(after: dict[str, int], before: dict[str, int]) -> dict[str, int]:
+def counter_deltas(after: dict[str, int], before: dict[str, int]) -> dict[str, int]:
+    """The counters that grew from `before` to `after`, by how much."""
     return {k: v - before.get(k, 0) for k, v in after.items() if v - before.get(k, 0) > 0}
 
 
@@ -317,7 +351,7 @@ def play(bag: BagData, client: Client, options: ReplayOptions, node: NodeProcess
             _wait_for(client, [pair], options.pair_timeout, node, stable_for=0.9)
     _wait_for(client, pairs, options.settle_timeout, node, stable_for=1.9)
     after = client.counters(time.monotonic() + 0.05, timeout=5.0) or before
-    deltas = _delta(after, before)
+    deltas = counter_deltas(after, before)
     _collect(pairs, client)
     assign_reasons(pairs, deltas)
     return pairs, deltas
