@@ -1,4 +1,4 @@
-"""Issue 5's ablations: the pose solver (PDSAC against Open3D's RANSAC on the same generated
+"""The ablations: the pose solver (PDSAC against Open3D's RANSAC on the same generated
 correspondences) and the backbone (the shipped PointMixer and DGCNN object models, optionally the paper's
 own generator).
 

@@ -5,12 +5,12 @@
     genreg-bench --ablation pose-solver --datasets modelnet-unseen-clean --max-pairs 20 --out runs/ablation
     genreg-bench --suite partial --out build/bench_partial --object-checkpoint /root/genreg-runs/x/best.pt
 
---suite partial: issue 13's partial-overlap tables (RPM-Net-style ModelNet40 pairs, kidnapped redkitchen
+--suite partial: the partial-overlap tables (RPM-Net-style ModelNet40 pairs, kidnapped redkitchen
 and SUN3D frame pairs at full resolution) with GenReg + point-to-point / point-to-plane ICP beside ICP,
 FPFH + RANSAC + ICP (fast and accurate), KISS-Matcher + ICP and small_gicp; --frame-stride subsamples
 the frames (e.g. 2 for a quicker look).
 
---ablation runs issue 5's ablations on the suite's datasets instead of the method comparison
+--ablation runs the ablations on the suite's datasets instead of the method comparison
 (pose-solver: PDSAC against Open3D RANSAC on the same generated correspondences; backbone: GenReg
 object models with different backbones on the object datasets: by default the shipped pointmixer
 `modelnet40` and dgcnn `modelnet40_dgcnn`, or --backbones NAME=CHECKPOINT ...; --paper-checkpoint adds

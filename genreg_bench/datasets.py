@@ -9,7 +9,7 @@ methods that do not apply there. A suite picks how many pairs of each dataset a 
 methods. `pair_truth` holds what a record is scored against: the true transform, the Chamfer-distance
 points and the pair's overlap share, the same for every method.
 
-Partial-overlap datasets (issue 13):
+Partial-overlap datasets:
 - `modelnet-rpmnet-{seen,unseen}` (`RPMNetPairs`): RPM-Net-style partial-to-partial pairs
   (`data.modelnet40.rpmnet_crop_pair`: two 768-point subsets, each cropped to 70 % by its own plane,
   noise, Euler angles in [0, 45] deg, translation in [-0.5, 0.5]) at the stored unit-sphere scale;
@@ -68,9 +68,9 @@ UNIT_BOX_SUCCESS = Success(5.0, 0.1)  # unit-box units: a tenth of the object's 
 # Metres, real frame pairs. Frame motions are small (identity: ~0.4 deg at gap 1, ~4 deg at gap 10), so RE
 # decides; TE is measured at the camera origin and carries a lever arm (0.5 deg at 3 m depth ~ 2.6 cm).
 METRIC_SUCCESS = Success(2.0, 0.1)
-UNIT_SPHERE_SUCCESS = Success(5.0, math.inf)  # RPM-Net-style objects (issue 13): the rotation decides
-KIDNAP_SUCCESS = Success(2.0, 0.05)  # kidnapped real frame pairs (issue 13), metres
-# Symmetric ModelNet40 categories (issue 13): their pose is ambiguous, so tables also give means without them.
+UNIT_SPHERE_SUCCESS = Success(5.0, math.inf)  # RPM-Net-style objects: the rotation decides
+KIDNAP_SUCCESS = Success(2.0, 0.05)  # kidnapped real frame pairs, metres
+# Symmetric ModelNet40 categories: their pose is ambiguous, so tables also give means without them.
 SYMMETRIC_CATEGORIES = ("bottle", "bowl", "cone", "cup", "flower_pot", "lamp", "tent", "vase")
 SCENE_ONLY_METHODS = frozenset({"fpfh+ransac+icp-accurate"})  # its 2.5 cm voxels are a metric setting
 
@@ -295,7 +295,7 @@ PARTIAL_PAIRS = {"redkitchen-kidnap-gap30": 12, "redkitchen-kidnap-gap60": 12, "
                  "sun3d-kidnap-gap20": 5}
 MODELNET = [f"modelnet-{c}-{v}" for c in ("seen", "unseen") for v in ("clean", "noise", "partial")]
 RPMNET = ["modelnet-rpmnet-seen", "modelnet-rpmnet-unseen"]
-# Issue 13's comparison: GenReg (alone, + point-to-point, + point-to-plane, + GICP: the node's scene setting)
+# The partial-overlap comparison: GenReg (alone, + point-to-point, + point-to-plane, + GICP: the node's scene setting)
 # beside the partial-overlap baselines.
 PARTIAL_METHODS = ("identity", "genreg", "genreg+icp", "genreg+p2plane", "genreg+gicp", "icp-p2plane",
                    "fpfh+ransac+icp", "fpfh+ransac+icp-accurate", "kiss-matcher+p2plane", "small_gicp")
@@ -309,7 +309,7 @@ SUITES: dict[str, Suite] = {
     # < 60 minutes on 2 cores.
     "full": Suite({**{n: 200 for n in MODELNET}, "redkitchen-fmr": 200, "redkitchen-gap1": 66,
                    "redkitchen-gap10": 64, "stairs-gap1": None, "stairs-gap2": None, "sun3d-gap5": 45}),
-    # Issue 13's partial-overlap tables at full frame resolution, well under an hour on 2 cores.
+    # The partial-overlap tables at full frame resolution, well under an hour on 2 cores.
     "partial": Suite({**{n: 100 for n in RPMNET}, **PARTIAL_PAIRS}, methods=PARTIAL_METHODS),
 }
 

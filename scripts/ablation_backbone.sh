@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# Backbone ablation (issue 5): train two GenReg object models that differ only in the backbone
+# Backbone ablation: train two GenReg object models that differ only in the backbone
 # (pointmixer = the shipped `modelnet40` architecture, dgcnn = without the mixer layers, as the shipped
 # `modelnet40_dgcnn`), same recipe (config/train_modelnet40_ppf.yaml), seed and budget, then compare them
 # with `genreg-bench --ablation backbone`. Resumable: re-running continues each run from its checkpoint.

@@ -184,8 +184,8 @@ def float64_acos_for_onnx() -> Iterator[None]:
         torch.acos = original
 
 
-def ort_session(path: str | os.PathLike, threads: int) -> Any:
-    """An onnxruntime CPU session with `threads` intra-op threads (sequential, no spinning: as
+def ort_inference(path: str | os.PathLike, threads: int) -> Any:
+    """An onnxruntime CPU InferenceSession with `threads` intra-op threads (sequential, no spinning: as
     OMP_WAIT_POLICY=PASSIVE for torch on a shared machine)."""
     import onnxruntime as ort
 
@@ -234,7 +234,7 @@ def export_all(args: argparse.Namespace) -> Figures:
                 entry["exporter"], entry["dynamo_error"] = export_onnx(core, example, out / f"{name}.onnx")
                 entry["export_s"] = time.perf_counter() - t0
                 try:
-                    ort_session(out / f"{name}.onnx", 1)
+                    ort_inference(out / f"{name}.onnx", 1)
                 except Exception as exc:  # noqa: BLE001 - unsupported kernels surface here
                     status["plain_error"] = f"{name}: {one_line(exc)}"
                     patched = True
@@ -317,16 +317,16 @@ def build_runners(model: nn.Module, threads: int, onnx: Figures | None, options:
         notes["onnxruntime"] = (onnx or {}).get("error", "not exported")
         return runners, notes
     try:
-        session = ort_session(onnx["path"], threads)
+        inference = ort_inference(onnx["path"], threads)
     except Exception as exc:  # noqa: BLE001 - an unsupported kernel: the row reports it
-        notes["onnxruntime"] = f"session failed: {one_line(exc)}"
+        notes["onnxruntime"] = f"loading failed: {one_line(exc)}"
         return runners, notes
-    inputs = [i.name for i in session.get_inputs()]
+    inputs = [i.name for i in inference.get_inputs()]
 
     def ort_run(a: torch.Tensor, b: torch.Tensor) -> Outputs:
         graph = model.knn_graph(a, b)
         feed = dict(zip(inputs, (a.numpy(), b.numpy(), graph.numpy()), strict=True))
-        return padded([torch.from_numpy(x) for x in session.run(None, feed)])
+        return padded([torch.from_numpy(x) for x in inference.run(None, feed)])
 
     runners["onnxruntime"] = ort_run
     notes["onnxruntime"] = (f"{onnx['exporter']} export {onnx['export_s']:.0f} s"

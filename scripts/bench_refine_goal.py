@@ -1,5 +1,5 @@
 #!/usr/bin/env python3
-"""Issue 5's refinement goal, measured: on the partial protocol, GenReg + refinement against
+"""The refinement goal, measured: on the partial protocol, GenReg + refinement against
 FPFH + RANSAC + ICP in mean RE, and in time (goal: at most 1/5 of FPFH + RANSAC + ICP's).
 
     python scripts/bench_refine_goal.py --pairs 100 --threads 2 --batch 16

@@ -1,5 +1,5 @@
 #!/usr/bin/env python3
-"""Speed benchmark of the core (issue 15, "Speed"): the registration API beside classical baselines.
+"""Speed benchmark of the core: the registration API beside classical baselines, against its speed goals.
 
     python scripts/bench_speed.py --threads 1 2
 
@@ -12,9 +12,9 @@ own downsampling, normals and features.
   stages (`RegistrationResult.timings`), beside Open3D point-to-plane ICP from identity (2.5 cm voxels),
   small_gicp GICP (2.5 cm voxels) and FPFH + RANSAC + ICP (5 cm feature voxels).
 - Objects: the shipped object models at N=512 on ModelNet40 unseen-category pairs (unit box), beside FPFH +
-  RANSAC on the same pairs: `modelnet40_dgcnn` (the default object model since issue 15's eleventh session),
+  RANSAC on the same pairs: `modelnet40_dgcnn` (the default object model since commit 7f8b38a, 2026-12-02),
   `modelnet40_partial` (partial overlap) and `modelnet40` (the mixer model, the default before).
-- The issue's goals: API / point-to-plane ICP <= 0.25 without refinement and <= 0.35 with it, object
+- The speed goals (since commit 1cce558, 2026-11-24): API / point-to-plane ICP <= 0.25 without refinement and <= 0.35 with it, object
   model / FPFH + RANSAC <= 0.4, network + PDSAC <= 10 ms at N=512, preprocess + postprocess <= 4 ms on
   the real pair.
 - Throughput: `register_many`, pairs per second at batch 1, 8 and 16 (object model on the ModelNet40 pairs,
@@ -259,7 +259,7 @@ def print_objects(results: dict[int, Figures]) -> None:
 
 
 def goals(figures: Figures) -> list[tuple[str, float, float]]:
-    """(goal, value, limit) of issue 15 at one thread count; the value must be <= the limit."""
+    """(goal, value, limit) of the speed goals at one thread count; the value must be <= the limit."""
     scene, objects = figures["scene"], figures["objects"]
     rows = [
         ("API / p2plane ICP, no refinement", scene["api"]["wall"] / scene["icp_p2plane"], 0.25),
@@ -281,7 +281,7 @@ def print_goals(results: dict[int, Figures]) -> None:
         values = [g[k][1] for g in per_thread]
         verdicts = ["met" if v <= limit else f"missed (x{v / limit:.1f})" for v in values]
         rows.append([label, *(f"{v:.2f}" for v in values), f"<= {limit:g}", *verdicts])
-    print("\nGoals (issue 15)")
+    print("\nSpeed goals")
     print(table(["goal", *(f"{t} thr" for t in threads), "goal", *(f"{t} thr" for t in threads)], rows))
 
 

@@ -1,5 +1,5 @@
 #!/usr/bin/env python3
-"""Make a GenReg checkpoint statistics-free, the warm start of a crop-robust model (issue 13).
+"""Make a GenReg checkpoint statistics-free, the warm start of a crop-robust model.
 
     git show 4aa431f:genreg_core/weights/modelnet40_partial.pt > prev.pt   # the GroupNorm partial model
     python scripts/fold_norm.py prev.pt runs/modelnet40_local_init.pt --pairs 150

@@ -1,6 +1,6 @@
 #!/usr/bin/env python3
 """Widen a statistics-free GenReg checkpoint without changing what it computes: the warm start of the
-capacity lever of issue 13 (`genreg_core.model.fold.widen`).
+capacity lever for partial overlap (`genreg_core.model.fold.widen`).
 
     python scripts/widen_model.py modelnet40_partial runs/modelnet40_wide_init.pt --gcnn-channels 128 --feature-dim 256
 
