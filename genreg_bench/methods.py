@@ -4,7 +4,8 @@ A `Method` maps (source, target) arrays to a `MethodOutput`: the 4x4 target_from
 time (the method's own preprocessing included) and JSON-ready details (GenReg: confidence, fitness, inlier
 ratio and stage timings of `RegistrationResult`). GenReg methods load one checkpoint per dataset kind
 ("object", "scene"): `genreg` (network + PDSAC), `genreg+icp`, `genreg+p2plane` and `genreg+gicp` (the API's
-point-to-point / point-to-plane / GICP refinement with its guard) and `genreg+p2plane+fallback` (plus the opt-in FPFH + RANSAC
+point-to-point / point-to-plane / GICP refinement with its guard, at the API's default refinement settings:
+the benchmark compares refinements, so it does not take the scene preset's 20 GICP iterations) and `genreg+p2plane+fallback` (plus the opt-in FPFH + RANSAC
 fallback; reported apart from GenReg's own figures); `load_each` skips a checkpoint that does not load, with a
 message. A suite runs its own methods (`datasets.Suite.methods`), `DEFAULT_METHODS` unless it names them.
 `measure_throughput` times the network + PDSAC stage (`Registrar.estimate`) at batch 1 and batched.
@@ -14,7 +15,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any, TypeVar
 
 import numpy as np
@@ -26,7 +27,6 @@ from genreg_core.config import (
     OBJECT_MODEL,
     SCENE_MODEL,
     FallbackConfig,
-    PDSACConfig,
     RefineConfig,
     RegistrationConfig,
 )
@@ -84,17 +84,21 @@ def genreg_method(registrar: Registrar) -> Method:
     return run
 
 
-def load_genreg(checkpoint: str, seed: int, pdsac: PDSACConfig | None = None) -> dict[str, Registrar]:
+def load_genreg(checkpoint: str, seed: int, base: RegistrationConfig | None = None) -> dict[str, Registrar]:
     """'genreg' (network + PDSAC), 'genreg+icp', 'genreg+p2plane' and 'genreg+gicp' (the API's point-to-point,
-    point-to-plane or GICP refinement (GICP: the node's scene setting, config/genreg.yaml), default settings
-    and guard) on one model, with `pdsac` settings (default: the API's; scenes: `config.SCENE_PDSAC`)."""
-    pdsac = pdsac or PDSACConfig()
-    plain = Registrar.from_checkpoint(checkpoint, RegistrationConfig(seed=seed, pdsac=pdsac))
-    refined = {name: Registrar(plain.model, RegistrationConfig(seed=seed, pdsac=pdsac, refine=RefineConfig(method=method)))
+    point-to-plane or GICP refinement with default refinement settings and guard) on one model, from the
+    settings `base` (default: the API's; scenes: `config.SCENE_REGISTRATION`, of which they keep all but the
+    refinement) with the run's seed."""
+    base = replace(base or RegistrationConfig(), seed=seed)
+
+    def config(method: str = "none", fallback: FallbackConfig | None = None) -> RegistrationConfig:
+        return replace(base, refine=RefineConfig(method=method), fallback=fallback or FallbackConfig())
+
+    plain = Registrar.from_checkpoint(checkpoint, config())
+    refined = {name: Registrar(plain.model, config(method))
                for name, method in (("genreg+icp", "point_to_point"), ("genreg+p2plane", "point_to_plane"),
                                      ("genreg+gicp", "gicp"))}
-    rescued = Registrar(plain.model, RegistrationConfig(seed=seed, pdsac=pdsac, refine=RefineConfig(method="point_to_plane"),
-                                                        fallback=FallbackConfig(method="fpfh_ransac")))
+    rescued = Registrar(plain.model, config("point_to_plane", FallbackConfig(method="fpfh_ransac")))
     return {"genreg": plain, **refined, "genreg+p2plane+fallback": rescued}
 
 

@@ -50,7 +50,7 @@ from genreg_bench.methods import (
     measure_throughput,
     method_table,
 )
-from genreg_core.config import SCENE_PDSAC
+from genreg_core.config import SCENE_REGISTRATION
 
 Measure = Callable[[MethodOutput, PairTruth], dict[str, Any]]  # extra record fields from output and truth
 
@@ -148,9 +148,9 @@ def run_benchmark(
     genreg = {}
     if any(m in GENREG_METHODS for m in wanted):
         kinds = {kind: checkpoints[kind] for kind in sorted({spec.kind for spec, _, _ in plan})}
-        for kind, checkpoint in kinds.items():  # scenes with the scene PDSAC settings (config.SCENE_PDSAC)
-            pdsac = SCENE_PDSAC if kind == SCENE else None
-            genreg.update(load_each({kind: checkpoint}, lambda c, p=pdsac: load_genreg(c, options.seed, p),
+        for kind, checkpoint in kinds.items():  # scenes from the scene preset (config.SCENE_REGISTRATION)
+            base = SCENE_REGISTRATION if kind == SCENE else None
+            genreg.update(load_each({kind: checkpoint}, lambda c, b=base: load_genreg(c, options.seed, b),
                                     "GenReg skipped on {name} datasets: {error}", skipped, log))
 
     records, infos, throughput = [], {}, []

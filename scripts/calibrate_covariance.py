@@ -4,27 +4,32 @@ pairs and check it on held-out pairs.
 `RegistrationResult.covariance` (ROS order x, y, z, rotation about x, y, z) is calibrated when the
 normalised squared error e' C^-1 e of the pose error e = (t_est - t_gt, rotvec(R_est R_gt^T)) has mean 6
 (its dimension). The script registers real frame pairs with the scene model: on redkitchen training frames
-(0-799) it records each pair's error and Gauss-Newton covariance, sets the floor to the median
+(0-799) it records each pair's error and raw Gauss-Newton covariance (`score.pose_covariance` with
+inflation 1 and no floor, on the registration's own refinement clouds: `Registrar.prepare` with the same
+seed), sets the floor to the median
 per-axis error (translation, rotation) of those pairs and then the inflation that makes the mean 6 there.
 It then prints the mean with those constants on redkitchen validation frames (800-999) and on SUN3D
-(never trained on). Same gaps everywhere.
+(never trained on). Same gaps everywhere. Settings: the scene preset `config.SCENE_REGISTRATION` (the
+node's scene settings); --method swaps its refinement method.
 
-    python scripts/calibrate_covariance.py --pairs 40 --method point_to_plane
+    python scripts/calibrate_covariance.py --pairs 40
 """
 
 from __future__ import annotations
 
 import argparse
+from dataclasses import replace
 
 import numpy as np
 from scipy.optimize import brentq
 from scipy.spatial.transform import Rotation
 from tqdm import tqdm
 
-from genreg_core import registration
-from genreg_core.config import SCENE_PDSAC, RefineConfig, RegistrationConfig
+from genreg_core.config import SCENE_REGISTRATION
 from genreg_core.data import RGBDSequence
+from genreg_core.geometry import apply_transform
 from genreg_core.registration import Registrar
+from genreg_core.score import fitness_distance, pose_covariance
 
 GAPS = (1, 5, 10)
 
@@ -34,6 +39,16 @@ def pose_error(T: np.ndarray, T_gt: np.ndarray) -> np.ndarray:
     return np.concatenate([T[:3, 3] - T_gt[:3, 3], Rotation.from_matrix(T[:3, :3] @ T_gt[:3, :3].T).as_rotvec()])
 
 
+def raw_covariance(reg: Registrar, source: np.ndarray, target: np.ndarray, T: np.ndarray) -> np.ndarray | None:
+    """The Gauss-Newton covariance of the pose T (target_from_source) without inflation or floor, computed as
+    the registration computes it: on the pair's refinement clouds in its normalised frame, metric output."""
+    p = reg.prepare(source, target)  # the config's seed: the same clouds as `reg.register`
+    moved = apply_transform(p.to_normalized(T), p.dense_src.astype(np.float64))
+    origin = (T[:3, 3] - p.offset) / p.scale  # the pose's position, normalised frame
+    return pose_covariance(moved, p.target_index, origin, fitness_distance(p.target_index), inflation=1.0,
+                           floor=(0.0, 0.0), scale=p.scale)
+
+
 def collect(reg: Registrar, seq: RGBDSequence, frames: range, count: int, rng: np.random.Generator,
             stride: int, label: str) -> list[tuple[np.ndarray, np.ndarray]]:
     """(error, Gauss-Newton covariance without floor or inflation) of `count` random pairs."""
@@ -41,9 +56,11 @@ def collect(reg: Registrar, seq: RGBDSequence, frames: range, count: int, rng: n
     out = []
     for i in tqdm(rng.choice(starts, size=min(count, len(starts)), replace=False), desc=label, leave=False):
         j = int(i) + int(rng.choice(GAPS))
-        result = reg.register(seq.points(j, stride=stride), seq.points(int(i), stride=stride))
-        if result.covariance is not None:
-            out.append((pose_error(result.transformation, seq.relative_pose(j, int(i))), result.covariance))
+        source, target = seq.points(j, stride=stride), seq.points(int(i), stride=stride)
+        T = reg.register(source, target).transformation
+        covariance = raw_covariance(reg, source, target, T)
+        if covariance is not None:
+            out.append((pose_error(T, seq.relative_pose(j, int(i))), covariance))
     return out
 
 
@@ -55,13 +72,14 @@ def mean_nees(samples: list[tuple[np.ndarray, np.ndarray]], inflation: float, fl
 def main() -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--pairs", type=int, default=40)
-    p.add_argument("--method", default="point_to_plane")
+    p.add_argument("--method", default=SCENE_REGISTRATION.refine.method,
+                   help="refinement method (default: the scene preset's)")
     p.add_argument("--stride", type=int, default=2)
     p.add_argument("--seed", type=int, default=0)
     args = p.parse_args()
-    registration.COVARIANCE_INFLATION, registration.COVARIANCE_FLOOR_M, registration.COVARIANCE_FLOOR_RAD = 1.0, 0.0, 0.0
     rng = np.random.default_rng(args.seed)
-    reg = Registrar.from_checkpoint("7scenes", RegistrationConfig(pdsac=SCENE_PDSAC, refine=RefineConfig(method=args.method)))
+    scene = replace(SCENE_REGISTRATION, refine=replace(SCENE_REGISTRATION.refine, method=args.method))
+    reg = Registrar.from_checkpoint("7scenes", scene)
     kitchen = RGBDSequence.redkitchen()
     train = collect(reg, kitchen, range(790), args.pairs, rng, args.stride, "train")
     errors = np.array([e for e, _ in train])

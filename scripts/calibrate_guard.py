@@ -1,18 +1,18 @@
 #!/usr/bin/env python3
-"""Choose the refinement guard (`refine.guard_below` and the spacing its fitness is compared at) on
-training pairs.
+"""Choose the refinement guard's threshold (`RefineConfig.guard_below`) on training pairs, through the API.
 
     python scripts/calibrate_guard.py --pairs 150 --threads 2
 
 ModelNet40 seen categories, *train* split (never the benchmark's test pairs), seed 1, two kinds of pairs:
 the paper's partial variant (target without its 20 % largest-x points, N=512) with the object model, and
-RPM-Net-style partial-to-partial crops with `modelnet40_partial`. Per pair: the API without the guard
-(RE, confidence, fitness) and the guard's own candidate, computed as the API does: the pair prepared by
-`Registrar.prepare`, `refine.guard_icp` on its refinement clouds, `score.overlap_fitness` of both
-candidates at `spacings` target spacings (the API's fitness uses `score.FITNESS_SPACINGS` = 3). The
-guard runs when the confidence is below `guard_below` and takes its candidate when that fitness is
-higher. Per setting: mean / median RE, success (RE < 5 deg), the share of pairs on which the guard runs
-(its cost) and the share on which it switches.
+RPM-Net-style partial-to-partial crops with `modelnet40_partial`. Each pair is registered by
+`Registrar.register` with point-to-point refinement and each `guard_below` of THRESHOLDS (0: no guard),
+so the guard is the API's own rule: it runs when the uncalibrated confidence of the refined estimate
+(`score.confidence` of its fitness, tight fitness and inlier ratio) is below `guard_below`, and its wide
+ICP from identity wins when it puts more source points within one target spacing of the target
+(`score.TIGHT_SPACINGS`); the result's `start` is then "initial_guess". Per setting: mean / median RE,
+success (RE < 5 deg), the share of pairs on which the guard runs (its cost; from the unguarded result's
+scores) and the share on which it switches.
 """
 
 from __future__ import annotations
@@ -26,7 +26,6 @@ sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 from genreg_core.config import OBJECT_MODEL  # no torch: threads are set before it loads
 
 THRESHOLDS = (0.0, 0.3, 0.4, 0.5, 1.0)
-SPACINGS = (3.0, 1.0, 0.6)
 KINDS = (("partial", OBJECT_MODEL), ("crop", "modelnet40_partial"))
 
 
@@ -45,45 +44,39 @@ def main() -> int:
     from genreg_core.config import RefineConfig, RegistrationConfig
     from genreg_core.data import ModelNetPairs, load_modelnet40
     from genreg_core.metrics import transform_errors
-    from genreg_core.prepare import model_frame_config
-    from genreg_core.refine import guard_icp
     from genreg_core.registration import Registrar
-    from genreg_core.score import FITNESS_SPACINGS, fitness_distance, overlap_fitness
+    from genreg_core.score import confidence
 
-    refine = RefineConfig(method="point_to_point", guard_below=0.0)
+    def config(guard_below: float) -> RegistrationConfig:
+        return RegistrationConfig(seed=0, refine=RefineConfig(method="point_to_point", guard_below=guard_below))
+
     shapes = load_modelnet40("train", "seen")
     for kind, checkpoint in KINDS:
-        registrar = Registrar.from_checkpoint(checkpoint, RegistrationConfig(seed=0, refine=refine))
+        plain = Registrar.from_checkpoint(checkpoint, config(0.0))
+        registrars = {th: Registrar(plain.model, config(th), plain.calibration) if th else plain for th in THRESHOLDS}
         pairs = (RPMNetPairs(shapes, seed=1) if kind == "crop"
-                 else ModelNetPairs(shapes, registrar.num_points, kind, seed=1))
-        rows = []
+                 else ModelNetPairs(shapes, plain.num_points, kind, seed=1))
+        re = {th: [] for th in THRESHOLDS}
+        switched = {th: [] for th in THRESHOLDS}
+        trigger = []  # the score the guard compares with guard_below (the unguarded result's: no guess given)
         for i in tqdm(np.random.default_rng(1).choice(len(pairs), args.pairs, replace=False), unit="pair",
                       desc=kind):
             item = pairs[int(i)]
             T_gt = np.asarray(item["transform"], dtype=np.float64)
-            plain = registrar.register(item["source"], item["target"])
-            prep = registrar.prepare(item["source"], item["target"])  # the API's frame and refinement clouds
-            T_plain = prep.to_normalized(plain.transformation)
-            T_guard = guard_icp(prep.dense_src, prep.dense_tgt, model_frame_config(registrar.config, prep.scale).refine)
-            spacing = fitness_distance(prep.dense_tgt) / FITNESS_SPACINGS
-            fits = [[overlap_fitness(prep.dense_src, prep.dense_tgt, T, s * spacing)[0] for s in SPACINGS]
-                    for T in (T_plain, T_guard)]
-            rows.append((transform_errors(plain.transformation, T_gt)[0], plain.confidence,
-                         transform_errors(prep.to_input_units(T_guard), T_gt)[0], *fits[0], *fits[1]))
-        data = np.array(rows)
-        re, conf, re_guard = data[:, 0], data[:, 1], data[:, 2]
-        fit_plain, fit_guard = data[:, 3: 3 + len(SPACINGS)], data[:, 3 + len(SPACINGS):]
-        print(f"\n{args.pairs} {kind} pairs, ModelNet40 train split (seen), checkpoint {checkpoint}, point-to-point"
-              "\n\n| guard_below | spacings | RE mean (deg) | RE median (deg) | success | guard runs | switches |"
-              "\n|---|---|---|---|---|---|---|")
-        for th in THRESHOLDS:
-            for j, s in enumerate(SPACINGS):
-                switch = (conf < th) & (fit_guard[:, j] > fit_plain[:, j])
-                chosen = np.where(switch, re_guard, re)
-                print(f"| {th:g} | {s:g} | {chosen.mean():.2f} | {np.median(chosen):.2f} | {np.mean(chosen < 5):.0%} "
-                      f"| {np.mean(conf < th):.0%} | {switch.mean():.0%} |")
+            for th, registrar in registrars.items():
+                result = registrar.register(item["source"], item["target"])
+                re[th].append(transform_errors(result.transformation, T_gt)[0])
+                switched[th].append(result.start == "initial_guess")
                 if th == 0.0:
-                    break  # no guard: the spacing does not matter
+                    trigger.append(confidence(result.fitness, result.tight_fitness, result.inlier_ratio))
+        trigger_a = np.array(trigger)
+        print(f"\n{args.pairs} {kind} pairs, ModelNet40 train split (seen), checkpoint {checkpoint}, point-to-point"
+              "\n\n| guard_below | RE mean (deg) | RE median (deg) | success | guard runs | switches |"
+              "\n|---|---|---|---|---|---|")
+        for th in THRESHOLDS:
+            chosen = np.array(re[th])
+            print(f"| {th:g} | {chosen.mean():.2f} | {np.median(chosen):.2f} | {np.mean(chosen < 5):.0%} "
+                  f"| {np.mean(trigger_a < th):.0%} | {np.mean(switched[th]):.0%} |")
     return 0
 
 

@@ -2,23 +2,25 @@
 
 Registers redkitchen training frame pairs (frames 0-799; gaps 10-60; the source moved by a further random
 "kidnap" motion of up to 45 deg and 0.5 m, so that some registrations fail) with the scene model and the
-node's refinement, and prints, per threshold, the share of successes kept and of failures rejected
+scene preset `config.SCENE_REGISTRATION` (the node's scene settings; --method swaps its refinement method),
+and prints, per threshold, the share of successes kept and of failures rejected
 (success: RE < 2 deg and TE < 5 cm), plus the ROC AUC of the confidence. The default is the largest
 multiple of 0.05 at least 0.05 below the lowest confidence of a training success: it rejects no training
 success, with a margin for data the model never saw, which scores lower.
 
-    python scripts/calibrate_min_confidence.py --pairs 60 --method point_to_plane
+    python scripts/calibrate_min_confidence.py --pairs 60
 """
 
 from __future__ import annotations
 
 import argparse
+from dataclasses import replace
 
 import numpy as np
 from tqdm import tqdm
 
 from genreg_bench.report import roc_auc
-from genreg_core.config import SCENE_PDSAC, RefineConfig, RegistrationConfig
+from genreg_core.config import SCENE_REGISTRATION
 from genreg_core.data import RGBDSequence
 from genreg_core.geometry import apply_transform, kidnap_motion
 from genreg_core.metrics import transform_errors
@@ -28,12 +30,14 @@ from genreg_core.registration import Registrar
 def main() -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--pairs", type=int, default=60)
-    p.add_argument("--method", default="point_to_plane")
+    p.add_argument("--method", default=SCENE_REGISTRATION.refine.method,
+                   help="refinement method (default: the scene preset's)")
     p.add_argument("--stride", type=int, default=2)
     p.add_argument("--seed", type=int, default=0)
     args = p.parse_args()
     rng = np.random.default_rng(args.seed)
-    reg = Registrar.from_checkpoint("7scenes", RegistrationConfig(pdsac=SCENE_PDSAC, refine=RefineConfig(method=args.method)))
+    scene = replace(SCENE_REGISTRATION, refine=replace(SCENE_REGISTRATION.refine, method=args.method))
+    reg = Registrar.from_checkpoint("7scenes", scene)
     seq = RGBDSequence.redkitchen()
     conf, ok = [], []
     for _ in tqdm(range(args.pairs), leave=False):

@@ -14,7 +14,8 @@ benchmark pairs:
 - kidnap30 / kidnap60: redkitchen *training* frames (0-799) 30 / 60 apart, the source moved by a kidnap
   motion, 40 pairs (seeds 7 / 8), pixel stride 2, `7scenes` (success: RE < 2 deg and TE < 5 cm);
 - gap10: redkitchen training frames 10 apart, no kidnap, 40 pairs (seed 11), stride 2, `7scenes`.
-Per setting: RE mean / median and success alone and refined (point-to-point; GICP on scenes, the node's).
+Per setting: RE mean / median and success alone and refined (point-to-point; on scenes the scene preset
+`config.SCENE_REGISTRATION`'s refinement, GICP with 20 iterations, the node's).
 `--checkpoints` replaces a kind's checkpoint by each of these in turn (names or files): the same table
 then chooses among training snapshots, on training pairs.
 The MODEL_CARD "PDSAC settings" table is this script's output (its "before" rows: the code before
@@ -50,7 +51,7 @@ def main() -> int:
     from tqdm import tqdm
 
     from genreg_bench.datasets import RPMNetPairs
-    from genreg_core.config import PDSACConfig, RefineConfig, RegistrationConfig
+    from genreg_core.config import SCENE_REGISTRATION, PDSACConfig, RefineConfig, RegistrationConfig
     from genreg_core.data import ModelNetPairs, RGBDSequence, load_modelnet40
     from genreg_core.geometry import apply_transform, kidnap_motion
     from genreg_core.metrics import transform_errors
@@ -94,12 +95,14 @@ def main() -> int:
             tightening = PDSACConfig().refit_tightening if not rest else (
                 () if rest[0] == "-" else tuple(float(f) for f in rest[0].split(",")))
             cells = []
-            for method in ("none", "gicp" if scene else "point_to_point"):
+            pdsac = PDSACConfig(num_hypotheses=int(m), sample_size=int(k), local_candidates=int(local),
+                                refit_tightening=tightening)
+            refined = SCENE_REGISTRATION.refine if scene else RefineConfig(method="point_to_point")
+            for refine in (RefineConfig(), refined):
+                method = refine.method
                 errors = []
                 for seed in seeds:
-                    cfg = RegistrationConfig(seed=seed, refine=RefineConfig(method=method),
-                                             pdsac=PDSACConfig(num_hypotheses=int(m), sample_size=int(k),
-                                                               local_candidates=int(local), refit_tightening=tightening))
+                    cfg = RegistrationConfig(seed=seed, refine=refine, pdsac=pdsac)
                     registrar = Registrar.from_checkpoint(checkpoint, cfg, num_points=args.num_points)
                     errors += [transform_errors(registrar.register(s, t).transformation, T)
                                for s, t, T in tqdm(items, desc=f"{kind} {setting} {method}", leave=False)]
