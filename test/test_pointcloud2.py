@@ -265,3 +265,25 @@ def test_from_cdr_reads_serialised_clouds_as_the_rclpy_message_and_names_bad_byt
     with pytest.raises(PointCloud2Error) as info:
         from_cdr(serialize_message(msg)[:40])
     assert info.value.reason == "undecodable_message"
+
+
+def test_little_endian_data_flagged_big_endian_never_escapes_registration_unnamed():
+    """A driver that flags little-endian data as big-endian: the decoder cannot know, the values are byte-swapped
+    garbage (huge, tiny, NaN). Registration raised a bare RuntimeError; now a named error or a finite result."""
+    from genreg_core.config import SCENE_REGISTRATION
+    from genreg_core.data import RGBDSequence
+    from genreg_core.errors import GenRegError
+    from genreg_core.registration import Registrar
+
+    seq = RGBDSequence.redkitchen()
+    reg = Registrar.from_checkpoint("7scenes", SCENE_REGISTRATION)
+    for i in (800, 900):
+        msg = xyz_to_msg(Header(frame_id="camera"), seq.points(i)[::8])
+        msg.is_bigendian = True
+        swapped = read_points(msg).points
+        assert len(swapped) > 1000 and not np.allclose(swapped[:10], seq.points(i)[::8][:10])
+        try:
+            result = reg.register(swapped, seq.points(i + 10)[::8])
+        except GenRegError:
+            continue
+        assert np.isfinite(result.transformation).all() and 0.0 <= result.confidence <= 1.0
