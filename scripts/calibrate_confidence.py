@@ -5,7 +5,8 @@
     python scripts/calibrate_confidence.py fit modelnet40_dgcnn
     python scripts/calibrate_confidence.py held-out 7scenes       # AUC, ECE, confident-wrong on held-out pairs
 
-`fit` registers training pairs through the public API with the model's profile(s), labels each result by
+`fit` registers training pairs through the public API with the model's profile(s) (the current calibration,
+if any, choosing among PDSAC's modes as in use; fit twice after a change of features), labels each result by
 the model's success rule, fits a logistic regression (scikit-learn) over `genreg_core.confidence.FEATURES`
 (the result's `verification`), prints its 5-fold cross-validated ROC AUC and expected calibration error
 (ECE, 10 equal-width bins), writes the calibration beside the checkpoint and a reliability diagram to
@@ -163,7 +164,8 @@ def fit(model: str, per_set: int) -> None:
     from sklearn.linear_model import LogisticRegression
     from sklearn.model_selection import StratifiedKFold, cross_val_predict
 
-    rows = list(register(model, training_sets(model, per_set), calibrated=False))
+    # the shipped calibration, if any, chooses among PDSAC's modes as it will in use; its features are refitted
+    rows = list(register(model, training_sets(model, per_set), calibrated=True))
     X = np.stack([r[2] for r in rows])
     y = np.array([r[4] for r in rows])
     regression = LogisticRegression(C=1.0, max_iter=5000)
