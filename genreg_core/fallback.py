@@ -1,7 +1,7 @@
 """Pipeline stage "fallback" (opt-in): classical global registration when GenReg stays unsure.
 
 Open3D FPFH features and feature-matching RANSAC, the classical global method of the field; the
-benchmark baselines (`genreg_core.bench.baselines`) call the same `fpfh_ransac`. Lengths are in the
+benchmark baselines (`genreg_bench.baselines`) call the same `fpfh_ransac`. Lengths are in the
 clouds' units; the pipeline calls it on the prepared pair's refinement clouds in their normalised frame
 (the source's robust extent is 1), with `FallbackConfig`'s fractions of that extent. Transforms are
 target_from_source (`genreg_core.geometry`).

@@ -38,7 +38,6 @@ class Stats:
         self.overhead = deque(maxlen=100)  # s, node work besides preprocessing and registration
         self.callback = deque(maxlen=200)  # s, one cloud subscription callback (checks + pairing)
         self.last: dict[str, float] = {}
-        self.history = deque(maxlen=100)  # figures of the last registered pairs (benchmarks read them)
         self.last_outcome = ""  # "", "registered", "registered with low confidence" or "failed: <reason>"
 
     def arrived(self, topic: str, now: float) -> None:
@@ -74,7 +73,6 @@ class Stats:
             self.latency.append(latency)
             self.overhead.append(overhead)
             self.last = dict(figures)
-            self.history.append(self.last)
             self.last_outcome = "registered with low confidence" if low_confidence else "registered"
 
     def snapshot(self) -> Snapshot:

@@ -307,7 +307,7 @@ class RegisterNode(LifecycleNode):
 
     @property
     def stats(self) -> Stats:
-        """The counters behind /diagnostics (benchmarks read `stats.history`)."""
+        """The counters behind /diagnostics."""
         return self._stats
 
     @property
