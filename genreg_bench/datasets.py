@@ -14,7 +14,7 @@ Partial-overlap datasets:
   (`data.modelnet40.rpmnet_crop_pair`: two 768-point subsets, each cropped to 70 % by its own plane,
   noise, Euler angles in [0, 45] deg, translation in [-0.5, 0.5]) at the stored unit-sphere scale;
   seen = test split of the first 20 categories, unseen = the last 20. Success: RE < 5 deg (no TE rule).
-- `redkitchen-kidnap-gap{30,60}` (validation frames 800-999) and `sun3d-kidnap-gap{5,20}` (both
+- `redkitchen-kidnap-gap{30,60,90}` (validation frames 800-999) and `sun3d-kidnap-gap{5,20}` (both
   fragments) (`KidnapPairs`): frame pairs (i, i + gap), source = frame i + gap, moved by a random rigid
   motion (`kidnap_motion`: angle in [0, 45] deg about a random axis through the source centroid, then a
   translation of random direction and length in [0, 0.5] m); the truth includes the motion. Success:
@@ -260,7 +260,7 @@ def dataset_specs() -> dict[str, DatasetSpec]:
         DatasetSpec("stairs-gap2", "Unseen scene 7-Scenes stairs, gap 2", SCENE, METRIC, frame_pairs(stairs, 2)),
         DatasetSpec("sun3d-gap5", "Unseen scene SUN3D, gap 5", SCENE, METRIC, frame_pairs(sun3d, 5)),
     ]
-    for gap in (30, 60):
+    for gap in (30, 60, 90):
         specs.append(DatasetSpec(f"redkitchen-kidnap-gap{gap}", f"7-Scenes redkitchen validation, gap {gap}, kidnapped",
                                  SCENE, KIDNAP, kidnap_pairs(["redkitchen"], gap, val)))
     for gap in (5, 20):
@@ -291,8 +291,8 @@ class Suite:
 # Kidnapped scene pairs per dataset in the partial suite: at full resolution every baseline takes seconds
 # per pair (2 threads, shared machine: redkitchen ~40 s for all methods, SUN3D ~170 s, most of it
 # fpfh+ransac+icp-accurate's RANSAC on ~35k 2.5 cm voxels), so the suite stays well under an hour.
-PARTIAL_PAIRS = {"redkitchen-kidnap-gap30": 12, "redkitchen-kidnap-gap60": 12, "sun3d-kidnap-gap5": 5,
-                 "sun3d-kidnap-gap20": 5}
+PARTIAL_PAIRS = {"redkitchen-kidnap-gap30": 12, "redkitchen-kidnap-gap60": 12, "redkitchen-kidnap-gap90": 12,
+                 "sun3d-kidnap-gap5": 5, "sun3d-kidnap-gap20": 5}
 MODELNET = [f"modelnet-{c}-{v}" for c in ("seen", "unseen") for v in ("clean", "noise", "partial")]
 RPMNET = ["modelnet-rpmnet-seen", "modelnet-rpmnet-unseen"]
 # The partial-overlap comparison: GenReg (alone, + point-to-point, + point-to-plane, + GICP: the node's scene setting)

@@ -7,6 +7,12 @@ the sections of `ablation.run_ablations` (same record fields, one table per data
 column. ModelNet40 tables add RE / TE means and success without the symmetric categories
 (`datasets.SYMMETRIC_CATEGORIES`); datasets whose overlap share varies get a success-by-overlap table
 (`OVERLAP_BINS`) and a panel of `success_vs_overlap.png`.
+
+`RegistrationResult.confidence` is a calibrated probability that the pose is right, so every table row with
+confidences (the GenReg methods) also gives its ROC AUC for the dataset's success rule, its expected
+calibration error (`expected_calibration_error`: 10 equal-width bins, as scripts/calibrate_confidence.py)
+and the confident-wrong count (confidence >= `CONFIDENT`, failed); `reliability.png` plots the observed
+success rate against the confidence per dataset kind.
 """
 
 from __future__ import annotations
@@ -26,6 +32,8 @@ from genreg_bench.methods import ALL_METHODS, GENREG_METHODS
 from genreg_bench.runner import BenchRun
 
 DEFAULT_CONFIDENCE_THRESHOLDS = (0.5, 0.9)
+CONFIDENT = 0.5  # a result at or above this confidence claims to be right: confident-wrong if it failed
+CALIBRATION_BINS = 10  # equal-width confidence bins of the ECE and the reliability diagram
 OVERLAP_BINS = (0.0, 0.2, 0.4, 0.6, 0.8, 1.0)  # success-by-overlap bins (the last one closed)
 MIN_OVERLAP_SPREAD = 0.1  # a dataset gets the success-by-overlap table and plot when its shares span this
 # Figures the GenReg paper (CVPR 2022) reports for a table of ours, shown under that table.
@@ -49,7 +57,7 @@ def summarize(records: Sequence[dict[str, Any]], cd_floor: Sequence[float] = ())
 
     Row: method, pairs, errors, cd, re_mean, re_median, te_mean, te_median, success (fraction), ms_median;
     with categories in the records also `asymmetric`: pairs, re_mean, te_mean, success of the pairs outside
-    the symmetric categories.
+    the symmetric categories; with confidences in the records (GenReg) also `calibration` (`calibration_stats`).
     """
     rows = []
     if len(cd_floor):
@@ -67,6 +75,10 @@ def summarize(records: Sequence[dict[str, Any]], cd_floor: Sequence[float] = ())
             "success": float(np.mean([bool(r["success"]) for r in rs])),
             "ms_median": 1e3 * _nanstat(col["seconds"], np.median),
         })
+        scored = _with_confidence(rs)
+        if scored:
+            rows[-1]["calibration"] = calibration_stats([r["confidence"] for r in scored],
+                                                        [bool(r["success"]) for r in scored])
         if any("category" in r for r in rs):
             rows[-1]["asymmetric"] = _means([r for r in rs if r.get("category") not in SYMMETRIC_CATEGORIES])
     return rows
@@ -126,6 +138,60 @@ def roc_auc(scores: Sequence[float], labels: Sequence[bool]) -> float | None:
     return float(mannwhitneyu(pos, neg, alternative="two-sided").statistic / (len(pos) * len(neg)))
 
 
+def reliability_bins(
+    confidence: Sequence[float], success: Sequence[bool], bins: int = CALIBRATION_BINS
+) -> list[tuple[int, float, float]]:
+    """(results, mean confidence, observed success rate) per equal-width confidence bin of [0, 1] (the last
+    bin closed; NaN means in an empty bin)."""
+    p = np.asarray(confidence, dtype=np.float64)
+    y = np.asarray(success, dtype=bool)
+    which = np.minimum((p * bins).astype(int), bins - 1)
+    return [(int((which == b).sum()), float(p[which == b].mean()) if (which == b).any() else float("nan"),
+             float(y[which == b].mean()) if (which == b).any() else float("nan")) for b in range(bins)]
+
+
+def expected_calibration_error(
+    confidence: Sequence[float], success: Sequence[bool], bins: int = CALIBRATION_BINS
+) -> float:
+    """Sum over equal-width confidence bins of |success rate - mean confidence| weighted by the bin's share
+    of the results (0: calibrated; NaN without results)."""
+    cells = reliability_bins(confidence, success, bins)
+    total = sum(n for n, _, _ in cells)
+    if not total:
+        return float("nan")
+    return float(sum(n / total * abs(rate - mean) for n, mean, rate in cells if n))
+
+
+def confident_wrong(
+    confidence: Sequence[float], success: Sequence[bool], threshold: float = CONFIDENT
+) -> tuple[int, int]:
+    """(failed results with confidence >= threshold, results with confidence >= threshold)."""
+    p = np.asarray(confidence, dtype=np.float64)
+    y = np.asarray(success, dtype=bool)
+    return int(((p >= threshold) & ~y).sum()), int((p >= threshold).sum())
+
+
+def calibration_stats(confidence: Sequence[float], success: Sequence[bool]) -> dict[str, Any]:
+    """auc (`roc_auc`, None: one class only), ece, confident_wrong and confident (`confident_wrong` at
+    `CONFIDENT`) of some results' confidences and successes (the dataset's success rule)."""
+    wrong, confident = confident_wrong(confidence, success)
+    return {"auc": roc_auc(confidence, success), "ece": expected_calibration_error(confidence, success),
+            "confident_wrong": wrong, "confident": confident}
+
+
+def _with_confidence(records: Sequence[dict[str, Any]]) -> list[dict[str, Any]]:
+    """The records with a finite confidence (a GenReg method that did not raise)."""
+    return [r for r in records if isinstance(r.get("confidence"), (int, float)) and math.isfinite(r["confidence"])]
+
+
+def _calibration_cells(c: dict[str, Any] | None) -> str:
+    """` AUC | ECE | k of n at >= 0.5 |` of a `calibration_stats` (dashes without one)."""
+    if c is None:
+        return " – | – | – |"
+    return (f" {_f(c['auc'], 3)} | {_f(c['ece'], 3)} | {c['confident_wrong']} of {c['confident']} "
+            f"at >= {CONFIDENT:g} |")
+
+
 def confidence_split(
     scores: Sequence[float], labels: Sequence[bool], threshold: float
 ) -> dict[str, Any]:
@@ -145,11 +211,11 @@ def confidence_rows(
 ) -> list[dict[str, Any]]:
     """Does `RegistrationResult.confidence` separate successes from failures? Per dataset and pooled per kind.
 
-    Row: dataset, method, pairs, successes, auc (None: one class only), mean_confidence, splits (one
-    `confidence_split` per threshold).
+    Row: dataset, method, pairs, successes, auc (None: one class only), ece, confident_wrong, confident
+    (`calibration_stats`), mean_confidence, splits (one `confidence_split` per threshold).
     """
     groups: list[tuple[str, str, list[dict[str, Any]]]] = []
-    with_conf = [r for r in run.records if r["method"] in GENREG_METHODS and "confidence" in r]
+    with_conf = _with_confidence([r for r in run.records if r["method"] in GENREG_METHODS])
     for method in GENREG_METHODS:
         mine = [r for r in with_conf if r["method"] == method]
         for name in run.datasets:
@@ -164,7 +230,7 @@ def confidence_rows(
         scores = [r["confidence"] for r in rs]
         labels = [bool(r["success"]) for r in rs]
         rows.append({"dataset": name, "method": method, "pairs": len(rs), "successes": int(sum(labels)),
-                     "auc": roc_auc(scores, labels), "mean_confidence": float(np.mean(scores)),
+                     **calibration_stats(scores, labels), "mean_confidence": float(np.mean(scores)),
                      "splits": [confidence_split(scores, labels, t) for t in thresholds]})
     return rows
 
@@ -177,20 +243,28 @@ def _pct(x: float | None) -> str:
     return "–" if x is None or not math.isfinite(x) else f"{100 * x:.0f}%"
 
 
+CALIBRATION_HEAD = f" conf. AUC | conf. ECE | confident-wrong (conf >= {CONFIDENT:g}) |"
+
+
 def dataset_table(rows: Sequence[dict[str, Any]], units: str) -> str:
     """Markdown table of `summarize` rows; with `asymmetric` stats, three columns without the symmetric
-    categories."""
+    categories; with `calibration` stats (GenReg's confidence), its ROC AUC, ECE and confident-wrong count
+    (dashes in the rows without confidences)."""
     asym = any("asymmetric" in r for r in rows)
+    calib = any("calibration" in r for r in rows)
     head = (f"| method | CD ({units}) | RE mean (deg) | RE median (deg) | TE mean ({units}) | "
             f"TE median ({units}) | success | ms/pair median |"
-            + (" RE mean w/o sym. (deg) | TE mean w/o sym. | success w/o sym. |" if asym else ""))
-    lines = [head, "|" + "---|" * (11 if asym else 8)]
+            + (" RE mean w/o sym. (deg) | TE mean w/o sym. | success w/o sym. |" if asym else "")
+            + (CALIBRATION_HEAD if calib else ""))
+    lines = [head, "|" + "---|" * (8 + 3 * asym + 3 * calib)]
     for r in rows:
         line = f"{_metric_cells(r)} {_f(r['ms_median'], 1)} |"
         if asym:
             a = r.get("asymmetric")
             line += (f" {_f(a['re_mean'], 2)} | {_f(a['te_mean'], 4)} | {_pct(a['success'])} |" if a
                      else " – | – | – |")
+        if calib:
+            line += _calibration_cells(r.get("calibration"))
         lines.append(line)
     return "\n".join(lines)
 
@@ -349,15 +423,22 @@ def markdown(run: BenchRun, thresholds: Sequence[float] = DEFAULT_CONFIDENCE_THR
     if conf:
         split_head = "".join(f" success if conf >= {t:g} (n) | success if conf < {t:g} (n) |" for t in thresholds)
         out += ["", "## Confidence: does it separate successes from failures?", "",
-                ("ROC AUC of `RegistrationResult.confidence` for success (1 = perfect, 0.5 = chance, – = only "
-                 "successes or only failures), and the success rate above and below fixed confidence thresholds."),
-                "", "| dataset | method | pairs | successes | mean confidence | ROC AUC |" + split_head,
-                "|---" * (6 + 2 * len(thresholds)) + "|"]
+                ("`RegistrationResult.confidence` is a calibrated probability that the pose is right. ROC AUC "
+                 "of the confidence for the dataset's success (1 = perfect, 0.5 = chance, – = only successes or "
+                 f"only failures); ECE: expected calibration error ({CALIBRATION_BINS} equal-width bins, "
+                 "|success rate - mean confidence| weighted by the bin's share; 0 = calibrated); confident-wrong: "
+                 f"failed results with confidence >= {CONFIDENT:g}, of all at >= {CONFIDENT:g}; the success rate "
+                 "above and below fixed confidence thresholds."),
+                "", (f"Reliability diagram (observed success rate against confidence, {CALIBRATION_BINS} bins, "
+                     "GenReg's rows per dataset kind): [reliability.png](reliability.png)"), "",
+                "![reliability diagram](reliability.png)", "",
+                ("| dataset | method | pairs | successes | mean confidence | ROC AUC | ECE | confident-wrong |"
+                 + split_head), "|---" * (8 + 2 * len(thresholds)) + "|"]
         for c in conf:
             splits = "".join(f" {_pct(sp['success_above'])} ({sp['n_above']}) | {_pct(sp['success_below'])} "
                              f"({sp['n_below']}) |" for sp in c["splits"])
             out.append(f"| {c['dataset']} | {c['method']} | {c['pairs']} | {c['successes']} | "
-                       f"{c['mean_confidence']:.3f} | {_f(c['auc'], 3)} |" + splits)
+                       f"{c['mean_confidence']:.3f} |" + _calibration_cells(c) + splits)
     for section in run.ablations:
         out += ablation_markdown(section, th["requested"])
     return "\n".join(out) + "\n"
@@ -506,6 +587,46 @@ def plot_success_overlap(run: BenchRun, path: Path) -> Path | None:
     return _save_with_legend(fig, axes, path, columns=6)
 
 
+def plot_reliability(run: BenchRun, path: Path) -> Path | None:
+    """Reliability diagram: observed success rate against mean confidence in `CALIBRATION_BINS` equal-width
+    bins (empty bins skipped), one line per GenReg method, one panel per dataset kind (object, scene) with
+    its pooled results, results per bin beneath; None without confidences."""
+    import matplotlib.pyplot as plt
+
+    scored = _with_confidence([r for r in run.records if r["method"] in GENREG_METHODS])
+    kinds = [k for k in ("object", "scene")
+             if any(run.datasets.get(r["dataset"], {}).get("kind") == k for r in scored)]
+    if not kinds:
+        return None
+    colors = _colors(method_order(r["method"] for r in run.records))
+    edges = np.linspace(0, 1, CALIBRATION_BINS + 1)
+    fig, axes = plt.subplots(2, len(kinds), figsize=(4.6 * len(kinds), 5.4), height_ratios=(3, 1),
+                             squeeze=False, sharex=True)
+    for col, kind in enumerate(kinds):
+        top, bottom = axes[0, col], axes[1, col]
+        top.plot([0, 1], [0, 1], "k:", label="perfectly calibrated")
+        mine = [r for r in scored if run.datasets[r["dataset"]]["kind"] == kind]
+        methods = method_order(r["method"] for r in mine)
+        width = 1 / CALIBRATION_BINS / max(1, len(methods))
+        for k, m in enumerate(methods):
+            rs = [r for r in mine if r["method"] == m]
+            p, y = [r["confidence"] for r in rs], [bool(r["success"]) for r in rs]
+            cells = [c for c in reliability_bins(p, y) if c[0]]
+            top.plot([c[1] for c in cells], [c[2] for c in cells], "o-", color=colors[m],
+                     label=f"{m} (ECE {expected_calibration_error(p, y):.3f})")
+            counts = [n for n, _, _ in reliability_bins(p, y)]
+            bottom.bar(edges[:-1] + (k + 0.5) * width, counts, width=width, color=colors[m])
+        top.set(xlim=(0, 1), ylim=(-0.02, 1.02), ylabel="observed success rate",
+                title=f"{kind} datasets ({len(mine)} results)")
+        top.legend(loc="upper left", fontsize=7)
+        top.grid(alpha=0.3)
+        bottom.set(xlabel="confidence (predicted probability of success)", ylabel="results")
+    fig.tight_layout()
+    fig.savefig(path, dpi=90)
+    plt.close(fig)
+    return path
+
+
 def load_run(path: str | Path) -> BenchRun:
     """A run back from its results.json (None where the run had NaN), e.g. to re-render the report."""
     data = json.loads(Path(path).read_text())
@@ -524,8 +645,8 @@ def load_run(path: str | Path) -> BenchRun:
 def write_report(
     run: BenchRun, out_dir: str | Path, thresholds: Sequence[float] = DEFAULT_CONFIDENCE_THRESHOLDS
 ) -> dict[str, Path]:
-    """Write report.md, results.json and (with method tables) re_cdf.png, accuracy_vs_time.png and, when a
-    dataset's overlap varies, success_vs_overlap.png into out_dir."""
+    """Write report.md, results.json and (with method tables) re_cdf.png, accuracy_vs_time.png, when a
+    dataset's overlap varies success_vs_overlap.png, and with GenReg confidences reliability.png into out_dir."""
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     paths = {"markdown": out / "report.md", "json": out / "results.json"}
@@ -537,4 +658,7 @@ def write_report(
         overlap = plot_success_overlap(run, out / "success_vs_overlap.png")
         if overlap is not None:
             paths["success_vs_overlap"] = overlap
+        reliability = plot_reliability(run, out / "reliability.png")
+        if reliability is not None:
+            paths["reliability"] = reliability
     return paths

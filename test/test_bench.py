@@ -209,7 +209,7 @@ def test_rpmnet_datasets_are_partial_pairs_at_the_unit_sphere_scale():
 
 @pytest.mark.parametrize("name, gap, sequences", [
     ("redkitchen-kidnap-gap30", 30, ["redkitchen"]), ("redkitchen-kidnap-gap60", 60, ["redkitchen"]),
-    ("sun3d-kidnap-gap5", 5, ["sun3d-1", "sun3d-2"]), ("sun3d-kidnap-gap20", 20, ["sun3d-1", "sun3d-2"]),
+    ("redkitchen-kidnap-gap90", 90, ["redkitchen"]), ("sun3d-kidnap-gap5", 5, ["sun3d-1", "sun3d-2"]), ("sun3d-kidnap-gap20", 20, ["sun3d-1", "sun3d-2"]),
 ])
 def test_kidnap_datasets_truth_puts_the_moved_source_onto_the_target(name, gap, sequences):
     from genreg_core.data import RGBDSequence
@@ -294,7 +294,12 @@ def test_partial_suite_plan_and_dataset_checks():
 
     suite = SUITES["partial"]
     assert set(suite.counts) == {"modelnet-rpmnet-seen", "modelnet-rpmnet-unseen", "redkitchen-kidnap-gap30",
-                                 "redkitchen-kidnap-gap60", "sun3d-kidnap-gap5", "sun3d-kidnap-gap20"}
+                                 "redkitchen-kidnap-gap60", "redkitchen-kidnap-gap90", "sun3d-kidnap-gap5",
+                                 "sun3d-kidnap-gap20"}
+    # The added gaps as many pairs as their siblings, kidnapped, on the validation frames / both SUN3D fragments.
+    assert suite.counts["redkitchen-kidnap-gap90"] == suite.counts["redkitchen-kidnap-gap30"] == 12
+    assert suite.counts["sun3d-kidnap-gap20"] == suite.counts["sun3d-kidnap-gap5"] == 5
+    assert DATASETS["redkitchen-kidnap-gap90"].frame == DATASETS["redkitchen-kidnap-gap30"].frame
     assert suite.methods == PARTIAL_METHODS and "kiss-matcher+p2plane" in PARTIAL_METHODS
     assert resolve_suite("partial", None)[2].frame_stride == 1
     assert resolve_suite("smoke", None)[2].frame_stride == 4
@@ -336,7 +341,66 @@ def test_partial_suite_cli_on_object_pairs(tmp_path, run_bench_cli):
     assert len(data["records"]) == 2 * len(info["methods"])
     for r in data["records"]:
         assert 0.0 <= r["overlap"] <= 1.0 and r["category"] and "error" not in r, r
-    assert "RE mean w/o sym." in (tmp_path / "report.md").read_text()
+    md = (tmp_path / "report.md").read_text()
+    assert "RE mean w/o sym." in md
+    # GenReg rows carry the calibration columns, baselines dashes; the reliability diagram is written and linked.
+    assert report.CALIBRATION_HEAD in md and "(reliability.png)" in md
+    genreg_row = next(line for line in md.splitlines() if line.startswith("| genreg | "))
+    assert genreg_row.count(" of ") == 1 and "at >= 0.5 |" in genreg_row
+    assert next(line for line in md.splitlines() if line.startswith("| identity | ")).endswith("| – | – | – |")
+    assert (tmp_path / "reliability.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+def test_ece_and_confident_wrong_on_hand_made_numbers():
+    # Bins of width 0.1: 0.05 and 0.15 (one failure each), 0.92 and 0.98 (success, failure): 1, 1, 2 of 4.
+    p = [0.05, 0.15, 0.92, 0.98]
+    y = [False, False, True, False]
+    # |0 - 0.05| / 4 + |0 - 0.15| / 4 + |0.5 - 0.95| * 2 / 4 = 0.0125 + 0.0375 + 0.225
+    assert math.isclose(report.expected_calibration_error(p, y), 0.275)
+    assert report.confident_wrong(p, y) == (1, 2) and report.confident_wrong(p, y, threshold=0.1) == (2, 3)
+    # Perfectly calibrated bins: 0.25 succeeds 1 in 4, 0.75 succeeds 3 in 4, 1.0 (the closed last bin) always.
+    p = [0.25] * 4 + [0.75] * 4 + [1.0] * 2
+    y = [True, False, False, False, True, True, True, False, True, True]
+    assert math.isclose(report.expected_calibration_error(p, y), 0.0, abs_tol=1e-12)
+    cells = report.reliability_bins(p, y)
+    assert len(cells) == 10 and cells[2] == (4, 0.25, 0.25) and cells[9] == (2, 1.0, 1.0) and cells[0][0] == 0
+    assert math.isnan(report.expected_calibration_error([], []))
+    # One class only: no AUC, a dash in the table.
+    stats = report.calibration_stats([0.9, 0.8, 0.2], [True, True, True])
+    assert stats["auc"] is None and stats == {**stats, "confident_wrong": 0, "confident": 2}
+    assert report._calibration_cells(stats).startswith(" – | ")
+
+
+def test_report_gains_calibration_columns_and_reliability_diagram(tmp_path):
+    """Hand-made records of a kidnapped-pair table: GenReg rows with confidences get AUC, ECE and the
+    confident-wrong count, the baseline dashes; the confidence section the same; reliability.png linked."""
+    from genreg_bench.runner import BenchRun
+
+    conf = (0.95, 0.9, 0.7, 0.6, 0.2)
+    good = (True, True, False, True, False)
+    recs = [_rec("genreg", 1.0 if ok else 9.0, 0.01, 0.1, 0.01, ok, confidence=c, pair=k)
+            for k, (c, ok) in enumerate(zip(conf, good))]
+    recs += [_rec("genreg+icp", 1.0, 0.01, 0.1, 0.01, True, confidence=0.9, pair=k) for k in range(5)]
+    recs += [_rec("icp-p2plane", 5.0, 0.01, 0.1, 0.01, False, pair=k) for k in range(5)]
+    meta = {"suite": "custom", "date": "now", "machine": {"cpu_count": 2, "torch": "x"},
+            "threads": {"requested": 2, "torch": 2, "OMP_NUM_THREADS": "2", "OMP_WAIT_POLICY": "PASSIVE",
+                        "small_gicp": 2},
+            "checkpoints": {"object": "o", "scene": "s"}, "options": {"cd_points": 4096}}
+    info = {"title": "D", "kind": "scene", "units": "m", "checkpoint": "s", "success": {"max_re_deg": 2.0, "max_te": 0.05},
+            "pairs": 5, "available_pairs": 5, "points_per_cloud": 10, "genreg": True, "cd_floor": [0.1] * 5}
+    paths = report.write_report(BenchRun(meta, {"d": info}, recs, [], []), tmp_path)
+    md = paths["markdown"].read_text()
+    ece = report.expected_calibration_error(conf, good)
+    # AUC: successes 0.95, 0.9, 0.6 against failures 0.7, 0.2: 5 of 6 pairs ordered.
+    assert f"| {0.8333:.3f} | {ece:.3f} | 1 of 4 at >= 0.5 |" in md
+    assert "| genreg+icp | " in md and "| – | 0.100 | 0 of 5 at >= 0.5 |" in md  # one class: no AUC
+    assert next(line for line in md.splitlines() if line.startswith("| icp-p2plane | ")).endswith("| – | – | – |")
+    assert report.CALIBRATION_HEAD in md and "| ROC AUC | ECE | confident-wrong |" in md
+    assert "![reliability diagram](reliability.png)" in md
+    assert paths["reliability"] == tmp_path / "reliability.png"
+    assert paths["reliability"].read_bytes()[:4] == b"\x89PNG"
+    row = report.to_json(BenchRun(meta, {"d": info}, recs, [], []))["confidence"][0]
+    assert row["confident_wrong"] == 1 and row["confident"] == 4 and math.isclose(row["ece"], ece)
 
 
 def test_pairs_flag_sets_every_dataset_count_and_keeps_the_suite_name():
