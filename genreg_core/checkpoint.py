@@ -44,11 +44,11 @@ def _unreadable(path: Path, exc: Exception) -> str:
     if path.stat().st_size == 0:
         return f"checkpoint {path} is empty (0 bytes)"
     text = str(exc)
+    if not zipfile.is_zipfile(path):  # torch writes zip archives; a cut-off one loses its directory at the end
+        return f"checkpoint {path} is truncated or not a torch checkpoint ({path.stat().st_size} bytes)"
     if isinstance(exc, pickle.UnpicklingError) or "weights_only" in text:
         return (f"checkpoint {path} holds objects other than tensors and plain values; refused, since loading "
                 "them could run code (a genreg checkpoint holds only weights and settings)")
-    if not zipfile.is_zipfile(path):  # torch writes zip archives; a cut-off one loses its directory at the end
-        return f"checkpoint {path} is truncated or not a torch checkpoint ({path.stat().st_size} bytes)"
     first = (text.strip().splitlines() or [type(exc).__name__])[0]
     return f"checkpoint {path} is corrupt or not a genreg checkpoint: {first}"
 

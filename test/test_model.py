@@ -78,7 +78,7 @@ def test_checkpoint_round_trip_and_errors(tmp_path):
     with pytest.raises(CheckpointError, match="not found"):
         load_checkpoint(tmp_path / "missing.pt")
     (tmp_path / "bad.pt").write_bytes(b"not a checkpoint")
-    with pytest.raises(CheckpointError, match="corrupt"):
+    with pytest.raises(CheckpointError, match="not a torch checkpoint"):
         load_checkpoint(tmp_path / "bad.pt")
     with pytest.raises(CheckpointError, match="N=64"):
         load_checkpoint(path, num_points=512)
