@@ -618,7 +618,7 @@ def plot_reliability(run: BenchRun, path: Path) -> Path | None:
             bottom.bar(edges[:-1] + (k + 0.5) * width, counts, width=width, color=colors[m])
         top.set(xlim=(0, 1), ylim=(-0.02, 1.02), ylabel="observed success rate",
                 title=f"{kind} datasets ({len(mine)} results)")
-        top.legend(loc="upper left", fontsize=7)
+        top.legend(loc="best", fontsize=7)
         top.grid(alpha=0.3)
         bottom.set(xlabel="confidence (predicted probability of success)", ylabel="results")
     fig.tight_layout()
