@@ -1,0 +1,89 @@
+"""Map localisation (`genreg_core.localization.MapLocalizer`) with the shipped scene model: scans placed in
+a map fused from redkitchen validation frames, against the ground-truth poses (measured, never tuned on)."""
+
+from __future__ import annotations
+
+import numpy as np
+import open3d as o3d
+import pytest
+from scipy.spatial.transform import Rotation
+
+from genreg_core.data.rgbd import RGBDSequence
+from genreg_core.errors import InvalidPointCloudError, NonFinitePointsError, TooFewPointsError
+from genreg_core.geometry import apply_transform, make_transform
+from genreg_core.localization import MapLocalizer, voxelize
+from genreg_core.metrics import transform_errors
+
+MAP_FRAMES = range(800, 1000, 10)  # redkitchen validation frames fused into the map
+SCANS = (805, 855, 925)  # scans between map frames
+STRIDE = 4
+
+
+def fused_map(seq: RGBDSequence, frames: range, stride: int = STRIDE, voxel: float = 0.02) -> np.ndarray:
+    """The frames' points moved by their poses into the world frame, concatenated, voxelised (Open3D)."""
+    world = np.concatenate([apply_transform(seq.pose(i), seq.points(i, stride=stride).astype(np.float64))
+                            for i in frames])
+    cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(world)).voxel_down_sample(voxel)
+    return np.asarray(cloud.points)
+
+
+@pytest.fixture(scope="module")
+def kitchen() -> tuple[RGBDSequence, MapLocalizer]:
+    seq = RGBDSequence.redkitchen()
+    return seq, MapLocalizer(fused_map(seq, MAP_FRAMES))
+
+
+def test_scans_between_map_frames_are_placed_without_a_guess(kitchen):
+    seq, loc = kitchen
+    confident = 0
+    for i in SCANS:
+        result = loc.localize(seq.points(i, stride=STRIDE))
+        re, te = transform_errors(result.transformation, seq.pose(i))  # the map frame is the world frame
+        assert re < 2.0 and te < 0.05, (i, re, te, result.confidence)
+        confident += result.confidence >= 0.5
+    assert confident >= len(SCANS) - 1
+
+
+def test_a_scan_of_another_building_gets_a_low_confidence(kitchen):
+    _, loc = kitchen
+    result = loc.localize(RGBDSequence.sun3d(1).points(960, stride=STRIDE))
+    assert result.confidence < 0.5, result.confidence
+
+
+def test_a_guess_10_deg_and_20_cm_off_is_corrected(kitchen):
+    seq, loc = kitchen
+    truth = seq.pose(855)
+    axis = np.array([1.0, 2.0, -1.0]) / np.sqrt(6.0)
+    off = make_transform(Rotation.from_rotvec(np.radians(10.0) * axis).as_matrix(), [0.12, -0.1, 0.12])
+    guess = off @ truth
+    assert transform_errors(guess, truth)[0] > 9.0
+    result = loc.localize(seq.points(855, stride=STRIDE), initial_guess=guess)
+    re, te = transform_errors(result.transformation, truth)
+    assert re < 2.0 and te < 0.05, (re, te, result.confidence)
+    assert result.confidence >= 0.5
+
+
+def test_bad_input_raises_the_registrars_named_errors(kitchen):
+    seq, loc = kitchen
+    scan = seq.points(855, stride=16)
+    with pytest.raises(InvalidPointCloudError):
+        loc.localize(scan[:, :2])
+    with pytest.raises(NonFinitePointsError):
+        loc.localize(np.full((100, 3), np.nan))
+    with pytest.raises(TooFewPointsError):
+        loc.localize(np.zeros((200, 3)))  # 200 points, one voxel
+    with pytest.raises(InvalidPointCloudError):
+        loc.localize(scan, initial_guess=np.eye(3))
+    with pytest.raises(InvalidPointCloudError):
+        MapLocalizer(np.zeros((10, 2)), registrar=loc.registrar)
+
+
+def test_places_cover_the_map_and_voxelize_keeps_one_centroid_per_voxel(kitchen):
+    _, loc = kitchen
+    places = loc.places(0.8)
+    assert places is loc.places(0.8)  # cached by radius
+    covered = np.unique(np.concatenate([loc.tree.query(p, k=1)[1] for p in places]))
+    assert len(covered) == len(loc.map)  # every map point lies in some place
+    assert max(len(p) for p in places) < len(loc.map)
+    points = np.array([[0.01, 0.01, 0.01], [0.03, 0.03, 0.03], [0.11, 0.0, 0.0]])
+    assert np.allclose(voxelize(points, 0.1), [[0.02, 0.02, 0.02], [0.11, 0.0, 0.0]])
