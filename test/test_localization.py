@@ -87,3 +87,14 @@ def test_places_cover_the_map_and_voxelize_keeps_one_centroid_per_voxel(kitchen)
     assert max(len(p) for p in places) < len(loc.map)
     points = np.array([[0.01, 0.01, 0.01], [0.03, 0.03, 0.03], [0.11, 0.0, 0.0]])
     assert np.allclose(voxelize(points, 0.1), [[0.02, 0.02, 0.02], [0.11, 0.0, 0.0]])
+
+
+def test_candidate_places_find_the_pose_when_the_whole_map_is_not_trusted(kitchen):
+    """`accept_whole=1`: the whole map's pose never stands alone, the candidate places compete."""
+    seq, loc = kitchen
+    scan = seq.points(925, stride=STRIDE)
+    places = MapLocalizer(loc.map, registrar=loc.registrar, voxel_size=loc.voxel_size, accept_whole=1.0)
+    assert places.extent >= places.whole_map_ratio * places.scan_geometry(voxelize(scan, loc.voxel_size))[2]
+    result = places.localize(scan)
+    re, te = transform_errors(result.transformation, seq.pose(925))
+    assert re < 2.0 and te < 0.05 and result.confidence >= 0.5, (re, te, result.confidence)
