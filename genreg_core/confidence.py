@@ -6,8 +6,9 @@ correspondences the pose keeps (the inlier ratio) and how well the geometry cons
 (`score.unconstrained_directions`). A logistic model over those `FEATURES` turns them into P(success),
 where success is the model's rule (`ConfidenceModel.success`: scenes RE < 2 deg and TE < 5 cm; objects
 RE < 5 deg). It is fitted on training pairs only (`scripts/calibrate_confidence.py`) for one checkpoint and
-one profile, and ships beside the checkpoint as `<name>.confidence.json`, tied to the checkpoint by its
-SHA-256: a calibration never silently serves another model. A checkpoint without one keeps the uncalibrated
+the refinements it lists (`refine_methods`: results refined otherwise are on another scale), and ships
+beside the checkpoint as `<name>.confidence.json`, tied to the checkpoint by its SHA-256: a calibration
+never silently serves another model, nor a refinement it was not fitted for. A checkpoint without one keeps the uncalibrated
 score `score.confidence` (the geometric mean of fitness, tight fitness and inlier ratio). Either is then
 multiplied by the degeneracy factor: where the geometry leaves a motion free, no pose along it is "right".
 """
@@ -52,6 +53,11 @@ class ConfidenceModel:
     fitted_on: str  # the training pairs and the registration profile
     date: str
     features: tuple[str, ...] = FEATURES
+    refine_methods: tuple[str, ...] = ()  # the refinements (RefineConfig.method) it was fitted with
+
+    def serves(self, refine_method: str) -> bool:
+        """Whether it was fitted for results refined this way (the features' scale depends on it)."""
+        return refine_method in self.refine_methods
 
     def probability(self, x: np.ndarray) -> float:
         """P(success) of one `features` vector."""
@@ -68,7 +74,7 @@ class ConfidenceModel:
         """Read a calibration; with `checkpoint`, check that it was fitted for that file (CheckpointError)."""
         try:
             values = json.loads(Path(path).read_text())
-            model = cls(**{**values, "coef": tuple(values["coef"]), "features": tuple(values["features"])})
+            model = cls(**{**values, **{k: tuple(values[k]) for k in ("coef", "features", "refine_methods")}})
         except (OSError, ValueError, TypeError, KeyError) as exc:
             raise CheckpointError(f"confidence calibration {path} is unreadable: {exc}") from None
         if model.features != FEATURES or len(model.coef) != len(FEATURES):

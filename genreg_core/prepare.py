@@ -188,7 +188,8 @@ def robust_extent(points: np.ndarray) -> tuple[np.ndarray, float]:
     else:
         ordered = np.partition(points, [k, len(points) - 1 - k], axis=0)
         lo, hi = ordered[k], ordered[len(points) - 1 - k]
-    return lo, float(max((hi - lo).max(), 1e-12))
+    with np.errstate(over="ignore"):  # an overflowing extent is refused by the caller
+        return lo, float(max((hi - lo).max(), 1e-12))
 
 
 def model_frame_config(cfg: RegistrationConfig, scale: float) -> RegistrationConfig:

@@ -177,6 +177,11 @@ class Registrar:
         return cls(model, config, load_beside(resolve_checkpoint(name_or_path)))
 
     @property
+    def calibrated(self) -> bool:
+        """Whether the confidence is the calibration's probability: a calibration fitted for this refinement."""
+        return self.calibration is not None and self.calibration.serves(self.config.refine.method)
+
+    @property
     def num_points(self) -> int:
         return self.model.config.num_points
 
@@ -265,7 +270,7 @@ class Registrar:
                                             est.target_generated[k: k + 1], cfg.pdsac.tau)[0])
 
         def verified(T_r: np.ndarray) -> float:  # the calibrated probability (no calibration: the tight share)
-            if self.calibration is None:
+            if not self.calibrated:
                 return tight(T_r)
             shares = overlap_shares(p.dense_src, p.target_index, T_r, np.multiply(SPACINGS, p.target_index.spacing))
             return self.calibration.probability(features(shares, agreement(T_r), 1.0))
@@ -317,7 +322,7 @@ class Registrar:
         unconstrained, constrained = unconstrained_directions(moved, p.target_index, distance)
         shares = overlap_shares(p.dense_src, p.target_index, T_n, np.multiply(SPACINGS, p.target_index.spacing))
         verification = features(shares, inlier_ratio, constrained)  # 8. confidence
-        probability = constrained * (self.calibration.probability(verification) if self.calibration is not None
+        probability = constrained * (self.calibration.probability(verification) if self.calibrated
                                      else confidence(fitness, tight_fitness, inlier_ratio))
         a_gen = p.points_to_input_units(est.source_generated[k].double().cpu().numpy())
         b_gen = p.points_to_input_units(est.target_generated[k].double().cpu().numpy())

@@ -15,10 +15,11 @@ calibration and prints the same figures per set, plus success and the confident-
 >= 0.5 and wrong).
 
 Training pairs (never the held-out ones):
-- scene model `7scenes`, profile `config.SCENE_REGISTRATION`: redkitchen frames 0-799, frame pairs 1, 5, 10,
+- scene model `7scenes`, `config.SCENE_REGISTRATION` refined by GICP, point-to-plane ICP or not at all
+  (pooled): redkitchen frames 0-799, frame pairs 1, 5, 10,
   30, 60, 90 and 300 frames apart (the last mostly without overlap), the source kidnapped (up to 45 deg
   about a random axis, 0.5 m). Success: RE < 2 deg and TE < 5 cm.
-- object models, profiles "GenReg alone" and "+ point-to-point ICP" (the objects params file) pooled:
+- object models, not refined, point-to-point or point-to-plane ICP (pooled):
   ModelNet40 train split (seen categories): clean pairs at N=512 up to 180 deg, and RPM-Net style
   partial-to-partial crops. Success: RE < 5 deg.
 Held-out pairs: redkitchen frames 800-999 (30, 60, 90 apart, kidnapped), SUN3D (unseen; 20 apart,
@@ -31,6 +32,7 @@ import argparse
 import sys
 import time
 from collections.abc import Callable, Iterator
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -40,7 +42,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 from genreg_core.checkpoint import resolve_checkpoint
 from genreg_core.confidence import FEATURES, ConfidenceModel, calibration_path, file_sha256
-from genreg_core.config import SCENE_MODEL, SCENE_REGISTRATION, RefineConfig, RegistrationConfig
+from genreg_core.config import SCENE_MODEL, SCENE_REGISTRATION, RegistrationConfig
 from genreg_core.data import FramePairs, ModelNetPairs, RGBDSequence, load_modelnet40
 from genreg_core.data.modelnet40 import rpmnet_crop_pair
 from genreg_core.metrics import transform_errors
@@ -79,10 +81,10 @@ def object_pairs(split: str, categories: str, count: int, seed: int) -> dict[str
 
 
 def profiles(model: str) -> dict[str, RegistrationConfig]:
-    if model == SCENE_MODEL:
-        return {"scene profile (GICP)": SCENE_REGISTRATION}
-    return {"GenReg alone": RegistrationConfig(), "+ point-to-point ICP": RegistrationConfig(
-        refine=RefineConfig(method="point_to_point"))}
+    """The refinements a model's calibration serves, each with the model's settings otherwise."""
+    base = SCENE_REGISTRATION if model == SCENE_MODEL else RegistrationConfig()
+    methods = ("gicp", "point_to_plane", "none") if model == SCENE_MODEL else ("none", "point_to_point", "point_to_plane")
+    return {method: replace(base, refine=replace(base.refine, method=method)) for method in methods}
 
 
 def success(model: str) -> tuple[str, Callable[[float, float], bool]]:
@@ -182,8 +184,8 @@ def fit(model: str, per_set: int) -> None:
     sets = ", ".join(dict.fromkeys(r[0] for r in rows))
     calibration = ConfidenceModel(tuple(float(c) for c in regression.coef_[0]), float(regression.intercept_[0]),
                                   rule, file_sha256(checkpoint),
-                                  f"{len(y)} training results: {sets}; profiles: {', '.join(profiles(model))}",
-                                  time.strftime("%Y-%m-%d"))
+                                  f"{len(y)} training results: {sets}; refinements: {', '.join(profiles(model))}",
+                                  time.strftime("%Y-%m-%d"), refine_methods=tuple(profiles(model)))
     print("wrote", calibration.save(calibration_path(checkpoint)))
     figure = REPO / "docs" / f"reliability_{model}.png"
     reliability_diagram(held, y, f"{model}: training pairs, 5-fold cross-validated ({rule})", figure)

@@ -61,3 +61,21 @@ def test_clouds_of_two_different_places_are_not_confident(scene_registrar):
     for i, j in ((850, 940), (900, 960), (950, 980)):
         result = scene_registrar.register(kitchen.points(i)[::4], sun3d.points(j)[::4])
         assert result.confidence < 0.5, result.verification
+
+
+def test_a_calibration_serves_only_the_refinements_it_was_fitted_for(scene_registrar):
+    """Results refined otherwise are on another scale: they get the uncalibrated overlap score."""
+    import dataclasses
+
+    from genreg_core.score import confidence
+
+    calibration = scene_registrar.calibration
+    assert calibration.serves("gicp") and scene_registrar.calibrated
+    other = dataclasses.replace(SCENE_REGISTRATION, refine=dataclasses.replace(SCENE_REGISTRATION.refine,
+                                                                                method="point_to_point"))
+    unserved = Registrar(scene_registrar.model, other, dataclasses.replace(calibration, refine_methods=("gicp",)))
+    seq = RGBDSequence.redkitchen()
+    result = unserved.register(seq.points(900)[::4], seq.points(903)[::4])
+    assert not unserved.calibrated
+    assert result.confidence == pytest.approx(confidence(result.fitness, result.tight_fitness, result.inlier_ratio),
+                                              rel=1e-6)
