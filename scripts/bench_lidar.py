@@ -47,7 +47,7 @@ import torch
 from tqdm import tqdm
 
 from genreg_bench.baselines import BaselineParams, fpfh_ransac_icp
-from genreg_core.config import from_dict
+from genreg_core.config import SCENE_MODEL, SCENE_REGISTRATION
 from genreg_core.data.synthetic_lidar import (
     LidarSensor,
     default_sensor,
@@ -60,22 +60,9 @@ from genreg_core.data.synthetic_lidar import (
 from genreg_core.geometry import apply_transform
 from genreg_core.metrics import transform_errors
 from genreg_core.registration import Registrar
-from genreg_ros.config import NodeConfig, defaults
 
 MAX_RE_DEG, MAX_TE_M = 2.0, 0.3
 BASELINE_SCALE = {"room": 3.0, "street": 6.0}
-
-
-def scene_profile() -> NodeConfig:
-    """The node's scene profile (config/genreg.yaml) as a NodeConfig."""
-    nested: dict = {}
-    for name, value in defaults("genreg.yaml").items():
-        *groups, leaf = name.split(".")
-        node = nested
-        for g in groups:
-            node = node.setdefault(g, {})
-        node[leaf] = value
-    return from_dict(NodeConfig, nested)
 
 
 def make_pairs(scene_name: str, n: int, seed: int, sensor: LidarSensor
@@ -145,12 +132,11 @@ class Tally:
 
 
 def main() -> int:
-    profile = scene_profile()
     torch.set_num_threads(ARGS.threads)
-    cfg = profile.registration_config()
-    registrar = Registrar.from_checkpoint(profile.model.checkpoint, cfg)
+    cfg = SCENE_REGISTRATION  # the node's scene profile (config/genreg.yaml is generated from it)
+    registrar = Registrar.from_checkpoint(SCENE_MODEL, cfg)
     load = os.getloadavg()
-    print(f"bench_lidar: model {profile.model.checkpoint}, refine {cfg.refine.method} x{cfg.refine.max_iterations}, "
+    print(f"bench_lidar: model {SCENE_MODEL}, refine {cfg.refine.method} x{cfg.refine.max_iterations}, "
           f"PDSAC sample size {cfg.pdsac.sample_size}, estimate_threads {cfg.estimate_threads}")
     print(f"threads: torch {torch.get_num_threads()}, OMP_NUM_THREADS {os.environ.get('OMP_NUM_THREADS')}; "
           f"cpus {os.cpu_count()}; load average {load[0]:.2f} {load[1]:.2f} {load[2]:.2f}")

@@ -11,7 +11,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from genreg_core.config import from_dict
+from genreg_core.config import SCENE_MODEL, SCENE_REGISTRATION
 from genreg_core.data.synthetic_lidar import (
     LidarScan,
     LidarSensor,
@@ -29,7 +29,6 @@ from genreg_core.data.synthetic_lidar import (
 from genreg_core.geometry import apply_transform
 from genreg_core.metrics import transform_errors
 from genreg_core.registration import Registrar
-from genreg_ros.config import NodeConfig, defaults
 
 EXACT = {"range_noise": 0.0, "duplicate_share": 0.0}  # a sensor without noise or dual returns
 
@@ -150,24 +149,9 @@ def test_scans_are_deterministic_given_the_rng_and_misses_are_dropped_by_default
 
 
 # ----------------------------------------------------------------------------- registration
-def scene_profile() -> NodeConfig:
-    """The node's scene profile, the settings of config/genreg.yaml."""
-    nested: dict = {}
-    for name, value in defaults("genreg.yaml").items():
-        *groups, leaf = name.split(".")
-        node = nested
-        for g in groups:
-            node = node.setdefault(g, {})
-        node[leaf] = value
-    return from_dict(NodeConfig, nested)
-
-
 @pytest.fixture(scope="module")
 def registrar() -> Registrar:
-    profile = scene_profile()
-    cfg = profile.registration_config()
-    assert (profile.model.checkpoint, cfg.refine.method, cfg.pdsac.sample_size) == ("7scenes", "gicp", 4)
-    return Registrar.from_checkpoint(profile.model.checkpoint, cfg)
+    return Registrar.from_checkpoint(SCENE_MODEL, SCENE_REGISTRATION)  # the node's scene profile
 
 
 @pytest.mark.parametrize("scene_name", ["room", "street"])
