@@ -28,7 +28,7 @@ from genreg_core.errors import ConfigError
 REPO_ROOT = Path(__file__).resolve().parent.parent
 DEFAULT_DATA_ROOT = REPO_ROOT.parent / "shared" / "data"
 WEIGHTS_DIR = Path(__file__).resolve().parent / "weights"
-# The shipped models loaded when none is named (MODEL_CARD.md): objects (since issue 15's eleventh session the
+# The shipped models loaded when none is named (MODEL_CARD.md): objects (since 2026-12-02, commit 7f8b38a, the
 # DGCNN-only model: as accurate as the mixer model `modelnet40` on training pairs, half its time) and scenes.
 OBJECT_MODEL = "modelnet40_dgcnn"
 SCENE_MODEL = "7scenes"

@@ -3,7 +3,7 @@
 Python threads share one interpreter lock, and small_gicp and Open3D hold it while they run (GICP's
 covariances, k-d trees and alignment, the scores' searches: about half of a 270k-point pair's time). Two
 registrations on two threads of one process reached 31.6 pairs/s where two processes reached 52
-(redkitchen pairs, GICP, 2 cores; issue 15). So each worker is a process with its own `Registrar`.
+(redkitchen pairs, GICP, 2 cores; measured 2026-12-02). So each worker is a process with its own `Registrar`.
 
 `RemoteRegistrar` is that process seen from the node: `register`, `config` and `num_points` as the
 core's `Registrar`, one pair at a time. The two clouds go to the worker and the aligned cloud comes back

@@ -1,4 +1,4 @@
-"""Statistics-free GenReg: fold fixed normalisation statistics into the layers before them (issue 13).
+"""Statistics-free GenReg: fold fixed normalisation statistics into the layers before them.
 
 GroupNorm normalises each point's features by statistics over all the points of its cloud, and the soft
 pointer centres queries and keys on their cloud's mean: when a cloud is cropped these statistics move, so
@@ -66,7 +66,7 @@ def fold_statistics(model: GenRegNet, stats: NormStatistics) -> GenRegNet:
 def widen(model: GenRegNet, gcnn_channels: int, feature_dim: int, seed: int = 0) -> GenRegNet:
     """A wider copy of a statistics-free "dgcnn" GenRegNet that computes the same function (Net2Net-style:
     each new channel gets random incoming weights and zero outgoing weights), the warm start for the
-    capacity lever of issue 13. The edge convolution gets `gcnn_channels` outputs and the linear layer
+    widened partial-overlap model (MODEL_CARD.md). The edge convolution gets `gcnn_channels` outputs and the linear layer
     after it `feature_dim`; the PPF stem and the pointer's width stay. CheckpointError for other models or
     narrower widths."""
     cfg = model.config
