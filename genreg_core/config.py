@@ -178,8 +178,8 @@ class PDSACConfig:
                                     "optimisation; inference).", low=1, high=1000)
     modes: int = setting(4, "Distinct hypotheses (modes) verified: PDSAC's winner plus the best-scoring hypotheses "
                          "at least `mode_separation` apart from it and each other, each refit on its inliers, refined "
-                         "and verified against the clouds (without an initial guess); 1: the winner alone.", low=1,
-                         high=64)
+                         "and verified against the clouds (with a calibrated confidence, without an initial guess); "
+                         "1: the winner alone.", low=1, high=64)
     modes_below: float = setting(0.9, "The other modes are verified only when GenReg's refined estimate verifies "
                                  "below this confidence (1: always).", low=0.0, high=1.0)
     mode_separation: float = setting(15.0, "Two hypotheses are distinct modes when their rotations differ by more "

@@ -135,13 +135,14 @@ COARSE_ITERATIONS = 10  # ... with this many ICP iterations
 def verified_mode(p: PreparedPair, target: object, T_best: np.ndarray, start: np.ndarray, modes: np.ndarray,
                   refine_cfg: RefineConfig, verified: Callable[[np.ndarray], float], below: float = 1.0) -> np.ndarray:
     """GenReg's refined estimate `T_best` or another PDSAC mode (`pdsac.distinct_modes`, (K, 4, 4)), whichever
-    `verified` scores higher (the calibrated probability of being right; without a calibration, the share of
-    the source within one target spacing). Only when `T_best` scores below `below`: a confident estimate
-    costs nothing more. Each mode other than `T_best`'s `start` is refined coarsely (`COARSE_POINTS` source
+    `verified` scores higher (the calibrated probability of being right). Only when `T_best` scores below
+    `below`: a confident estimate costs nothing more. Each mode other than `T_best`'s `start` is refined coarsely (`COARSE_POINTS` source
     points, `COARSE_ITERATIONS` iterations), the best of them fully; it replaces `T_best` only if it then
     verifies better. Without refinement the modes are compared as they are."""
+    if not len(modes):
+        return T_best
     best_score = verified(T_best)
-    if not len(modes) or best_score >= below:
+    if best_score >= below:
         return T_best
     refining = refine_cfg.method != "none"
     coarse_src = p.dense_src[:: max(1, len(p.dense_src) // COARSE_POINTS)]
@@ -269,13 +270,13 @@ class Registrar:
             return float(union_inlier_share(T_k, a, est.source_generated[k: k + 1], b,
                                             est.target_generated[k: k + 1], cfg.pdsac.tau)[0])
 
-        def verified(T_r: np.ndarray) -> float:  # the calibrated probability (no calibration: the tight share)
-            if not self.calibrated:
-                return tight(T_r)
+        def verified(T_r: np.ndarray) -> float:  # the calibrated probability that T_r is right
             shares = overlap_shares(p.dense_src, p.target_index, T_r, np.multiply(SPACINGS, p.target_index.spacing))
             return self.calibration.probability(features(shares, agreement(T_r), 1.0))
 
-        modes = est.modes[k].double().cpu().numpy() if p.init is None else np.empty((0, 4, 4))  # a guess: local
+        # other modes only against a calibrated probability, and not around a guess (a guess asks for a local answer)
+        searched = self.calibrated and p.init is None
+        modes = est.modes[k].double().cpu().numpy() if searched else np.empty((0, 4, 4))
         mode = verified_mode(p, target, T_n, est.transform[k].double().cpu().numpy(), modes, cfg.refine,  # 6. modes
                              verified, cfg.pdsac.modes_below)
         if mode is not T_n:
