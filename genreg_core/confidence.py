@@ -5,8 +5,8 @@ share of source points within 1, 2, 3 and 5 target spacings), how many of the ne
 correspondences the pose keeps (the inlier ratio) and how well the geometry constrains it
 (`score.unconstrained_directions`). A logistic model over those `FEATURES` turns them into P(success),
 where success is the model's rule (`ConfidenceModel.success`: scenes RE < 2 deg and TE < 5 cm; objects
-RE < 5 deg). It is fitted on training pairs only (`scripts/calibrate_confidence.py`) for one checkpoint and
-the refinements it lists (`refine_methods`: results refined otherwise are on another scale), and ships
+RE < 5 deg). It is fitted on training pairs only (`scripts/calibrate_confidence.py`) for one checkpoint,
+one model per refinement (`RefineConfig.method`: the features' scale depends on it), and ships
 beside the checkpoint as `<name>.confidence.json`, tied to the checkpoint by its SHA-256: a calibration
 never silently serves another model, nor a refinement it was not fitted for. A checkpoint without one keeps the uncalibrated
 score `score.confidence` (the geometric mean of fitness, tight fitness and inlier ratio). Either is then
@@ -43,26 +43,36 @@ def features(shares: Sequence[float], inlier_ratio: float, constraint: float) ->
 
 
 @dataclass(frozen=True)
-class ConfidenceModel:
-    """A fitted logistic model P(success | features) and what it was fitted for."""
+class Logistic:
+    """P(success | features) = 1 / (1 + exp(-(coef . x + intercept)))."""
 
     coef: tuple[float, ...]  # one per FEATURES entry
     intercept: float
-    success: str  # the success rule the probability is of, e.g. "RE < 2 deg and TE < 0.05 m"
-    checkpoint_sha256: str  # the checkpoint it belongs to
-    fitted_on: str  # the training pairs and the registration profile
-    date: str
-    features: tuple[str, ...] = FEATURES
-    refine_methods: tuple[str, ...] = ()  # the refinements (RefineConfig.method) it was fitted with
-
-    def serves(self, refine_method: str) -> bool:
-        """Whether it was fitted for results refined this way (the features' scale depends on it)."""
-        return refine_method in self.refine_methods
 
     def probability(self, x: np.ndarray) -> float:
-        """P(success) of one `features` vector."""
         z = float(np.dot(self.coef, x)) + self.intercept
         return 1.0 / (1.0 + math.exp(-z)) if z > -700 else 0.0
+
+
+@dataclass(frozen=True)
+class ConfidenceModel:
+    """A checkpoint's calibration: one fitted `Logistic` per refinement it serves (the features' scale depends
+    on how the pose was refined), and what it was fitted for."""
+
+    by_refinement: dict[str, Logistic]  # RefineConfig.method -> its model
+    success: str  # the success rule the probability is of, e.g. "RE < 2 deg and TE < 0.05 m"
+    checkpoint_sha256: str  # the checkpoint it belongs to
+    fitted_on: str  # the training pairs
+    date: str
+    features: tuple[str, ...] = FEATURES
+
+    def serves(self, refine_method: str) -> bool:
+        """Whether it was fitted for results refined this way."""
+        return refine_method in self.by_refinement
+
+    def probability(self, x: np.ndarray, refine_method: str) -> float:
+        """P(success) of one `features` vector of a result refined by `refine_method` (one it serves)."""
+        return self.by_refinement[refine_method].probability(x)
 
     def save(self, path: str | os.PathLike) -> Path:
         path = Path(path)
@@ -74,10 +84,11 @@ class ConfidenceModel:
         """Read a calibration; with `checkpoint`, check that it was fitted for that file (CheckpointError)."""
         try:
             values = json.loads(Path(path).read_text())
-            model = cls(**{**values, **{k: tuple(values[k]) for k in ("coef", "features", "refine_methods")}})
-        except (OSError, ValueError, TypeError, KeyError) as exc:
+            models = {k: Logistic(tuple(v["coef"]), float(v["intercept"])) for k, v in values["by_refinement"].items()}
+            model = cls(**{**values, "by_refinement": models, "features": tuple(values["features"])})
+        except (OSError, ValueError, TypeError, KeyError, AttributeError) as exc:
             raise CheckpointError(f"confidence calibration {path} is unreadable: {exc}") from None
-        if model.features != FEATURES or len(model.coef) != len(FEATURES):
+        if model.features != FEATURES or any(len(m.coef) != len(FEATURES) for m in models.values()):
             raise CheckpointError(f"confidence calibration {path} has features {model.features}, expected {FEATURES}")
         if checkpoint is not None and model.checkpoint_sha256 != file_sha256(checkpoint):
             raise CheckpointError(f"confidence calibration {path} was fitted for another checkpoint than {checkpoint}")

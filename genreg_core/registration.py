@@ -272,7 +272,7 @@ class Registrar:
 
         def verified(T_r: np.ndarray) -> float:  # the calibrated probability that T_r is right
             shares = overlap_shares(p.dense_src, p.target_index, T_r, np.multiply(SPACINGS, p.target_index.spacing))
-            return self.calibration.probability(features(shares, agreement(T_r), 1.0))
+            return self.calibration.probability(features(shares, agreement(T_r), 1.0), cfg.refine.method)
 
         # other modes only against a calibrated probability, and not around a guess (a guess asks for a local answer)
         searched = self.calibrated and p.init is None
@@ -323,7 +323,7 @@ class Registrar:
         unconstrained, constrained = unconstrained_directions(moved, p.target_index, distance)
         shares = overlap_shares(p.dense_src, p.target_index, T_n, np.multiply(SPACINGS, p.target_index.spacing))
         verification = features(shares, inlier_ratio, constrained)  # 8. confidence
-        probability = constrained * (self.calibration.probability(verification) if self.calibrated
+        probability = constrained * (self.calibration.probability(verification, cfg.refine.method) if self.calibrated
                                      else confidence(fitness, tight_fitness, inlier_ratio))
         a_gen = p.points_to_input_units(est.source_generated[k].double().cpu().numpy())
         b_gen = p.points_to_input_units(est.target_generated[k].double().cpu().numpy())

@@ -5,21 +5,22 @@
     python scripts/calibrate_confidence.py fit modelnet40_dgcnn
     python scripts/calibrate_confidence.py held-out 7scenes       # AUC, ECE, confident-wrong on held-out pairs
 
-`fit` registers training pairs through the public API with the model's profile(s) (the current calibration,
-if any, choosing among PDSAC's modes as in use; fit twice after a change of features), labels each result by
-the model's success rule, fits a logistic regression (scikit-learn) over `genreg_core.confidence.FEATURES`
-(the result's `verification`), prints its 5-fold cross-validated ROC AUC and expected calibration error
+`fit` registers training pairs through the public API with each refinement the calibration serves (the
+current calibration, if any, choosing among PDSAC's modes as in use; fit twice after a change of features),
+labels each result by the model's success rule, fits one logistic regression (scikit-learn) per refinement
+over `genreg_core.confidence.FEATURES`
+(the result's `verification`), prints their 5-fold cross-validated ROC AUC and expected calibration error
 (ECE, 10 equal-width bins), writes the calibration beside the checkpoint and a reliability diagram to
 docs/reliability_<model>.png. `held-out` registers pairs never used for fitting with the shipped
 calibration and prints the same figures per set, plus success and the confident-wrong count (confidence
 >= 0.5 and wrong).
 
 Training pairs (never the held-out ones):
-- scene model `7scenes`, `config.SCENE_REGISTRATION` refined by GICP, point-to-plane ICP or not at all
-  (pooled): redkitchen frames 0-799, frame pairs 1, 5, 10,
+- scene model `7scenes`, `config.SCENE_REGISTRATION` refined by GICP, point-to-plane ICP or not at all:
+  redkitchen frames 0-799, frame pairs 1, 5, 10,
   30, 60, 90 and 300 frames apart (the last mostly without overlap), the source kidnapped (up to 45 deg
   about a random axis, 0.5 m). Success: RE < 2 deg and TE < 5 cm.
-- object models, not refined, point-to-point or point-to-plane ICP (pooled):
+- object models, not refined, point-to-point or point-to-plane ICP:
   ModelNet40 train split (seen categories): clean pairs at N=512 up to 180 deg, and RPM-Net style
   partial-to-partial crops. Success: RE < 5 deg.
 Held-out pairs: redkitchen frames 800-999 (30, 60, 90 apart, kidnapped), SUN3D (unseen; 20 apart,
@@ -40,8 +41,9 @@ from tqdm import tqdm
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
+from genreg_bench.report import calibration_stats
 from genreg_core.checkpoint import resolve_checkpoint
-from genreg_core.confidence import FEATURES, ConfidenceModel, calibration_path, file_sha256
+from genreg_core.confidence import FEATURES, ConfidenceModel, Logistic, calibration_path, file_sha256
 from genreg_core.config import SCENE_MODEL, SCENE_REGISTRATION, RegistrationConfig
 from genreg_core.data import FramePairs, ModelNetPairs, RGBDSequence, load_modelnet40
 from genreg_core.data.modelnet40 import rpmnet_crop_pair
@@ -124,20 +126,11 @@ def register(model: str, sets: dict[str, list[Pair]], calibrated: bool) -> Itera
                 yield name, profile, np.array([result.verification[f] for f in FEATURES]), result.confidence, ok(re, te), ms
 
 
-def expected_calibration_error(p: np.ndarray, y: np.ndarray, bins: int = 10) -> float:
-    """Sum over equal-width bins of |mean(y) - mean(p)| weighted by the bin's share of the results."""
-    which = np.minimum((p * bins).astype(int), bins - 1)
-    return float(sum(abs(y[which == b].mean() - p[which == b].mean()) * (which == b).mean()
-                     for b in range(bins) if (which == b).any()))
-
-
 def summary(p: np.ndarray, y: np.ndarray) -> str:
-    from sklearn.metrics import roc_auc_score
-
-    auc = roc_auc_score(y, p) if 0 < y.mean() < 1 else float("nan")
-    wrong = int(((p >= 0.5) & ~y).sum())
-    return (f"n {len(y):4d}  success {y.mean():6.1%}  AUC {auc:.3f}  ECE {expected_calibration_error(p, y):.3f}  "
-            f"confident-wrong {wrong} of {int((p >= 0.5).sum())} at >= 0.5")
+    stats = calibration_stats(p, y)
+    auc = "  –  " if stats["auc"] is None else f"{stats['auc']:.3f}"
+    return (f"n {len(y):4d}  success {y.mean():6.1%}  AUC {auc}  ECE {stats['ece']:.3f}  "
+            f"confident-wrong {stats['confident_wrong']} of {stats['confident']} at >= 0.5")
 
 
 def reliability_diagram(p: np.ndarray, y: np.ndarray, title: str, path: Path) -> None:
@@ -168,27 +161,30 @@ def fit(model: str, per_set: int) -> None:
 
     # the shipped calibration, if any, chooses among PDSAC's modes as it will in use; its features are refitted
     rows = list(register(model, training_sets(model, per_set), calibrated=True))
-    X = np.stack([r[2] for r in rows])
-    y = np.array([r[4] for r in rows])
-    regression = LogisticRegression(C=1.0, max_iter=5000)
-    held = cross_val_predict(regression, X, y, cv=StratifiedKFold(5, shuffle=True, random_state=0),
-                             method="predict_proba")[:, 1]
-    print(f"{model}: {len(y)} training results ({', '.join(profiles(model))}), 5-fold cross-validated:")
-    print("  all        ", summary(held, y))
-    for name in dict.fromkeys(r[0] for r in rows):
-        mask = np.array([r[0] == name for r in rows])
-        print(f"  {name:28s}", summary(held[mask], y[mask]))
-    regression.fit(X, y)
-    checkpoint = resolve_checkpoint(model)
     rule, _ = success(model)
+    fitted, held = {}, np.zeros(len(rows))
+    print(f"{model}: {len(rows)} training results, one model per refinement, 5-fold cross-validated:")
+    for method in profiles(model):
+        mine = np.array([r[1] == method for r in rows])
+        X = np.stack([r[2] for r, m in zip(rows, mine, strict=True) if m])
+        y = np.array([r[4] for r, m in zip(rows, mine, strict=True) if m])
+        regression = LogisticRegression(C=1.0, max_iter=5000)
+        held[mine] = cross_val_predict(regression, X, y, cv=StratifiedKFold(5, shuffle=True, random_state=0),
+                                       method="predict_proba")[:, 1]
+        regression.fit(X, y)
+        fitted[method] = Logistic(tuple(float(c) for c in regression.coef_[0]), float(regression.intercept_[0]))
+        print(f"  {method:16s} {'all':28s}", summary(held[mine], y))
+        for name in dict.fromkeys(r[0] for r in rows):
+            mask = mine & np.array([r[0] == name for r in rows])
+            print(f"  {method:16s} {name:28s}", summary(held[mask], np.array([r[4] for r in rows])[mask]))
+    checkpoint = resolve_checkpoint(model)
+    y_all = np.array([r[4] for r in rows])
     sets = ", ".join(dict.fromkeys(r[0] for r in rows))
-    calibration = ConfidenceModel(tuple(float(c) for c in regression.coef_[0]), float(regression.intercept_[0]),
-                                  rule, file_sha256(checkpoint),
-                                  f"{len(y)} training results: {sets}; refinements: {', '.join(profiles(model))}",
-                                  time.strftime("%Y-%m-%d"), refine_methods=tuple(profiles(model)))
+    calibration = ConfidenceModel(fitted, rule, file_sha256(checkpoint), f"{len(rows)} training results: {sets}",
+                                  time.strftime("%Y-%m-%d"))
     print("wrote", calibration.save(calibration_path(checkpoint)))
     figure = REPO / "docs" / f"reliability_{model}.png"
-    reliability_diagram(held, y, f"{model}: training pairs, 5-fold cross-validated ({rule})", figure)
+    reliability_diagram(held, y_all, f"{model}: training pairs, 5-fold cross-validated ({rule})", figure)
     print("wrote", figure)
 
 

@@ -23,11 +23,12 @@ SHIPPED = ("modelnet40", "modelnet40_dgcnn", "modelnet40_partial", "7scenes")
 @pytest.mark.parametrize("name", SHIPPED)
 def test_every_shipped_model_has_its_own_calibration(name):
     model = load_beside(resolve_checkpoint(name))
-    assert model is not None and model.features == FEATURES and len(model.coef) == len(FEATURES)
+    assert model is not None and model.features == FEATURES
     assert Registrar.from_checkpoint(name).calibration == model
-    # a well-seated pose against one that overlaps nothing
-    assert model.probability(features([0.9, 0.97, 0.99, 1.0], 0.6, 1.0)) > 0.8
-    assert model.probability(features([0.01, 0.03, 0.05, 0.1], 0.01, 1.0)) < 0.1
+    assert model.by_refinement  # every refinement it serves: a well-seated pose against one that overlaps nothing
+    for method in model.by_refinement:
+        assert model.probability(features([0.9, 0.97, 0.99, 1.0], 0.6, 1.0), method) > 0.8
+        assert model.probability(features([0.01, 0.03, 0.05, 0.1], 0.01, 1.0), method) < 0.1
 
 
 def test_a_calibration_serves_only_its_checkpoint_and_its_features(tmp_path):
@@ -73,7 +74,8 @@ def test_a_calibration_serves_only_the_refinements_it_was_fitted_for(scene_regis
     assert calibration.serves("gicp") and scene_registrar.calibrated
     other = dataclasses.replace(SCENE_REGISTRATION, refine=dataclasses.replace(SCENE_REGISTRATION.refine,
                                                                                 method="point_to_point"))
-    unserved = Registrar(scene_registrar.model, other, dataclasses.replace(calibration, refine_methods=("gicp",)))
+    only_gicp = dataclasses.replace(calibration, by_refinement={"gicp": calibration.by_refinement["gicp"]})
+    unserved = Registrar(scene_registrar.model, other, only_gicp)
     seq = RGBDSequence.redkitchen()
     result = unserved.register(seq.points(900)[::4], seq.points(903)[::4])
     assert not unserved.calibrated
