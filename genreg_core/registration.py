@@ -5,16 +5,18 @@
     target_points ~ apply_transform(result.transformation, source_points)
 
 Stages of `register_many` (`register` is one pair of it):
-    1. prepare   `prepare.prepare_pair`: validate, initial guess, one similarity, subsample to N
-    2. encode    `model.encode`: per-point rotation-invariant features of both clouds
-    3. interact  `model.interact`: the feature interaction (soft pointer) between the clouds
-    4. generate  `model.generate`: A_g (the source in the target frame) and B_g
-    5. PDSAC     `pdsac.pdsac_bidirectional`: one rigid transform from both generated sets
-    6. refine    `refine.refine` (ICP); with an initial guess, refinement from the guess competes with
-                 GenReg's start (fitness decides); without one, the guard `refine.guard_icp`; opt-in, the
-                 classical `fallback.fallback` (FPFH + RANSAC) when the confidence stays low
-    7. score     `score`: fitness, inlier ratio, covariance, unconstrained motions; the transform in input units
-    8. confidence `confidence`: P(the pose is right) from the verification, by the checkpoint's calibration
+    1. prepare    `prepare.prepare_pair`: validate, initial guess, one similarity, distinct subsets of N
+    2. encode     `model.encode`: per-point rotation-invariant features of both clouds
+    3. interact   `model.interact`: the feature interaction (soft pointer) between the clouds
+    4. generate   `model.generate`: A_g (the source in the target frame) and B_g
+    5. PDSAC      `pdsac.pdsac_bidirectional`: one rigid transform from both generated sets, and its other
+                  distinct modes (`pdsac.distinct_modes`)
+    6. candidates GenReg's estimate, PDSAC's other modes, the initial guess, the guard's ICP from identity,
+                  the opt-in classical fallback (`fallback.fallback`), each refined (`refine.refine`, ICP)
+    7. verify     `verify.Verifier`: overlap shares, agreement with the generated correspondences, the
+                  calibrated probability of being right (`confidence`)
+    8. choose     `Registrar.choose`: the candidate that verifies best replaces the pose so far
+    9. result     `Registrar.result`: scores, covariance, unconstrained motions, the confidence; input units
 Conventions (frames, units, T_target_source): `genreg_core.geometry`. `transformation` is the input's
 target_from_source; internally everything runs in the prepared pair's normalised frame.
 """
@@ -23,7 +25,7 @@ from __future__ import annotations
 
 import os
 import time
-from collections.abc import Callable, Iterator, Sequence
+from collections.abc import Iterator, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass, field, replace
 
@@ -31,7 +33,7 @@ import numpy as np
 import torch
 
 from genreg_core.checkpoint import load_checkpoint, resolve_checkpoint
-from genreg_core.confidence import FEATURES, SPACINGS, ConfidenceModel, features, load_beside
+from genreg_core.confidence import FEATURES, ConfidenceModel, features, load_beside
 from genreg_core.config import OBJECT_MODEL, PDSACConfig, RefineConfig, RegistrationConfig
 from genreg_core.fallback import fallback
 from genreg_core.geometry import apply_transform
@@ -40,7 +42,6 @@ from genreg_core.pdsac import (
     pdsac_bidirectional,
     seeded_generator,
     union_correspondences,
-    union_inlier_share,
 )
 from genreg_core.prepare import PreparedPair, model_frame_config, prepare_pair
 from genreg_core.refine import guard_icp, refine
@@ -48,14 +49,11 @@ from genreg_core.score import (
     COVARIANCE_FLOOR_M,
     COVARIANCE_FLOOR_RAD,
     COVARIANCE_INFLATION,
-    TIGHT_SPACINGS,
     confidence,
-    fitness_distance,
-    overlap_fitness,
-    overlap_shares,
     pose_covariance,
     unconstrained_directions,
 )
+from genreg_core.verify import Verifier
 
 # With an initial guess, another pose replaces it only when its fitness (share of source points overlapping
 # the target) is higher by more than this: a guess the user trusts is not traded for an equal-looking pose.
@@ -132,29 +130,50 @@ COARSE_POINTS = 1000  # `verified_mode` refines the other modes on this many sou
 COARSE_ITERATIONS = 10  # ... with this many ICP iterations
 
 
-def verified_mode(p: PreparedPair, target: object, T_best: np.ndarray, start: np.ndarray, modes: np.ndarray,
-                  refine_cfg: RefineConfig, verified: Callable[[np.ndarray], float], below: float = 1.0) -> np.ndarray:
+@dataclass
+class Choice:
+    """Where a pair's candidates settled (stage 8): the pose (normalised frame, b ~ T a), what it grew from
+    ("genreg", "initial_guess" or "fallback") and the inlier ratio of the generated correspondences under it."""
+
+    transform: np.ndarray
+    start: str
+    inlier_ratio: float
+
+
+def icp_target(p: PreparedPair, method: str) -> object:
+    """ICP's target: with its normals for point-to-plane; for GICP the scores' index, whose k-d tree it searches."""
+    return p.plane_target if method == "point_to_plane" else p.target_index if method == "gicp" else p.dense_tgt
+
+
+def overlap_score(check: Verifier, choice: Choice) -> float:
+    """The uncalibrated score of a choice (`score.confidence`) that the guard and the fallback test."""
+    return confidence(check.fitness(choice.transform)[0], check.tight(choice.transform), choice.inlier_ratio)
+
+
+def verified_mode(check: Verifier, target: object, T_best: np.ndarray, start: np.ndarray, modes: np.ndarray,
+                  refine_cfg: RefineConfig, below: float = 1.0) -> np.ndarray:
     """GenReg's refined estimate `T_best` or another PDSAC mode (`pdsac.distinct_modes`, (K, 4, 4)), whichever
-    `verified` scores higher (the calibrated probability of being right). Only when `T_best` scores below
-    `below`: a confident estimate costs nothing more. Each mode other than `T_best`'s `start` is refined coarsely (`COARSE_POINTS` source
-    points, `COARSE_ITERATIONS` iterations), the best of them fully; it replaces `T_best` only if it then
-    verifies better. Without refinement the modes are compared as they are."""
+    is more probably right (`Verifier.probability`). Only when `T_best` scores below `below`: a confident
+    estimate costs nothing more. Each mode other than `T_best`'s `start` is refined coarsely
+    (`COARSE_POINTS` source points, `COARSE_ITERATIONS` iterations), the best of them fully; it replaces
+    `T_best` only if it then verifies better. Without refinement the modes are compared as they are."""
     if not len(modes):
         return T_best
-    best_score = verified(T_best)
+    best_score = check.probability(T_best)
     if best_score >= below:
         return T_best
     refining = refine_cfg.method != "none"
-    coarse_src = p.dense_src[:: max(1, len(p.dense_src) // COARSE_POINTS)]
+    dense_src = check.pair.dense_src
+    coarse_src = dense_src[:: max(1, len(dense_src) // COARSE_POINTS)]
     coarse_cfg = replace(refine_cfg, max_iterations=min(COARSE_ITERATIONS, refine_cfg.max_iterations))
     distinct = [M for k, M in enumerate(modes) if not any(np.array_equal(M, m) for m in [start, *modes[:k]])]
     coarse = [refine(coarse_src, target, M, coarse_cfg) if refining else M for M in distinct]
-    scores = [verified(T) for T in coarse]
+    scores = [check.probability(T) for T in coarse]
     if not scores or max(scores) <= best_score:
         return T_best
     rival = coarse[int(np.argmax(scores))]
-    rival = refine(p.dense_src, target, rival, refine_cfg) if refining else rival
-    return rival if verified(rival) > best_score else T_best
+    rival = refine(dense_src, target, rival, refine_cfg) if refining else rival
+    return rival if check.probability(rival) > best_score else T_best
 
 
 class Registrar:
@@ -247,83 +266,69 @@ class Registrar:
 
     def refine_and_score(self, p: PreparedPair, est: Estimate, k: int, shared: dict[str, float]
                          ) -> RegistrationResult:
-        """Stages 6 (refine; the guess or the guard competes) and 7 (score) for pair k of a batch estimate."""
+        """Stages 6-9 for pair k of a batch estimate: the candidates, refined and verified, the choice and
+        the result."""
         cfg = model_frame_config(self.config, p.scale)  # distances in this pair's normalised frame
         t0 = time.perf_counter()
-        T_n = est.transform[k].double().cpu().numpy()
-        inlier_ratio = float(est.inliers[k].float().mean())
+        check = Verifier(p, est.source_generated[k], est.target_generated[k], cfg.pdsac.tau,  # 7. verify
+                         self.calibration if self.calibrated else None, cfg.refine.method)
+        choice = self.choose(p, est, k, check, cfg)  # 6.-8. candidates, refine, verify, choose
+        return self.result(p, est, k, check, choice, shared, t0)  # 9. result
+
+    def choose(self, p: PreparedPair, est: Estimate, k: int, check: Verifier, cfg: RegistrationConfig) -> Choice:
+        """Stages 6 (candidates, refined) to 8 (choose), in the pair's normalised frame `cfg`: GenReg's
+        estimate, refined; PDSAC's other modes when it is unsure (with a calibration and no guess: a guess
+        asks for a local answer); the initial guess, kept or refined (another pose replaces it only with a
+        `GUESS_MARGIN` more fitness); without a guess, the guard's wide ICP from identity when the overlap
+        score is below `refine.guard_below`; the opt-in classical fallback below `fallback.below`. The
+        guard and the fallback replace the pose so far when they seat more of the source within one
+        spacing."""
         refining = cfg.refine.method != "none"
-        # ICP's target: with its normals for point-to-plane; for GICP the scores' index, whose k-d tree it searches
-        method = cfg.refine.method
-        target = p.plane_target if method == "point_to_plane" else p.target_index if method == "gicp" else p.dense_tgt
-        if refining:
-            T_n = refine(p.dense_src, target, T_n, cfg.refine)  # 6. refine GenReg's estimate
-        distance = fitness_distance(p.target_index)
-        tight_distance = TIGHT_SPACINGS * p.target_index.spacing
-
-        def tight(T_r: np.ndarray) -> float:  # share of the source within one target spacing
-            return overlap_fitness(p.dense_src, p.target_index, T_r, tight_distance)[0]
-
-        def agreement(T_r: np.ndarray) -> float:  # inlier ratio of another pose under GenReg's correspondences
-            T_k = torch.from_numpy(T_r)[None].to(est.source_generated.dtype)
-            a, b = torch.from_numpy(p.a)[None], torch.from_numpy(p.b)[None]
-            return float(union_inlier_share(T_k, a, est.source_generated[k: k + 1], b,
-                                            est.target_generated[k: k + 1], cfg.pdsac.tau)[0])
-
-        def verified(T_r: np.ndarray) -> float:  # the calibrated probability that T_r is right
-            shares = overlap_shares(p.dense_src, p.target_index, T_r, np.multiply(SPACINGS, p.target_index.spacing))
-            return self.calibration.probability(features(shares, agreement(T_r), 1.0), cfg.refine.method)
-
-        # other modes only against a calibrated probability, and not around a guess (a guess asks for a local answer)
-        searched = self.calibrated and p.init is None
-        modes = est.modes[k].double().cpu().numpy() if searched else np.empty((0, 4, 4))
-        mode = verified_mode(p, target, T_n, est.transform[k].double().cpu().numpy(), modes, cfg.refine,  # 6. modes
-                             verified, cfg.pdsac.modes_below)
-        if mode is not T_n:
-            T_n, inlier_ratio = mode, agreement(mode)
-
-        fitness, rmse_n = overlap_fitness(p.dense_src, p.target_index, T_n, distance)  # 7. score
-        start, rescore = "genreg", False
-
-        def closer(T_a: np.ndarray, T_b: np.ndarray, margin: float = 0.0) -> bool:
-            """Whether T_a puts a larger share (by more than `margin`) of the source within one spacing (not
-            three: there a wrong pose that pushes a partial source's unmatched part onto the target can
-            overlap more than the true one; MODEL_CARD "guard")."""
-            return tight(T_a) > tight(T_b) + margin
-
-        if p.init is not None:  # 6. the initial guess (identity in the guess-moved frame), kept or refined
+        target = icp_target(p, cfg.refine.method)
+        winner = est.transform[k].double().cpu().numpy()
+        T = refine(p.dense_src, target, winner, cfg.refine) if refining else winner
+        choice = Choice(T, "genreg", float(est.inliers[k].float().mean()))
+        if check.calibration is not None and p.init is None:
+            mode = verified_mode(check, target, T, winner, est.modes[k].double().cpu().numpy(), cfg.refine,
+                                 cfg.pdsac.modes_below)
+            if mode is not T:
+                choice = Choice(mode, "genreg", check.agreement(mode))
+        if p.init is not None:  # the initial guess: identity in the guess-moved frame
             kept = np.eye(4)
             if refining:  # refinement must earn its move away from the user's guess, at one spacing
                 moved = refine(p.dense_src, target, kept, cfg.refine)
-                kept = moved if closer(moved, kept, REFINED_GUESS_MARGIN) else kept
-            rival = (kept, *overlap_fitness(p.dense_src, p.target_index, kept, distance))
-            if rival[1] + GUESS_MARGIN > fitness:  # another pose replaces the guess only with a margin
-                (T_n, fitness, rmse_n), start = rival, "initial_guess"
-                inlier_ratio = agreement(T_n)
-        elif refining and confidence(fitness, tight(T_n), inlier_ratio) < cfg.refine.guard_below:
-            guarded = guard_icp(p.dense_src, target, cfg.refine)  # 6. the guard: wide ICP from identity
-            if closer(guarded, T_n):
-                T_n, start, rescore = guarded, "initial_guess", True
-        if cfg.fallback.method != "none" and confidence(fitness, tight(T_n), inlier_ratio) < cfg.fallback.below:
-            rescue = fallback(p.dense_src, p.dense_tgt, cfg.fallback)  # 6. opt-in classical fallback
+                kept = moved if check.closer(moved, kept, REFINED_GUESS_MARGIN) else kept
+            if check.fitness(kept)[0] + GUESS_MARGIN > check.fitness(choice.transform)[0]:
+                choice = Choice(kept, "initial_guess", check.agreement(kept))
+        elif refining and overlap_score(check, choice) < cfg.refine.guard_below:
+            guarded = guard_icp(p.dense_src, target, cfg.refine)
+            if check.closer(guarded, choice.transform):
+                choice = Choice(guarded, "initial_guess", check.agreement(guarded))
+        if cfg.fallback.method != "none" and overlap_score(check, choice) < cfg.fallback.below:
+            rescue = fallback(p.dense_src, p.dense_tgt, cfg.fallback)
             rescue = refine(p.dense_src, target, rescue, cfg.refine) if refining else rescue
-            if closer(rescue, T_n):
-                T_n, start, rescore = rescue, "fallback", True
-        if rescore:  # the guard's or the fallback's pose: scored afresh
-            fitness, rmse_n = overlap_fitness(p.dense_src, p.target_index, T_n, distance)
-            inlier_ratio = agreement(T_n)
-        tight_fitness = tight(T_n)
+            if check.closer(rescue, choice.transform):
+                choice = Choice(rescue, "fallback", check.agreement(rescue))
+        return choice
+
+    def result(self, p: PreparedPair, est: Estimate, k: int, check: Verifier, choice: Choice,
+               shared: dict[str, float], t0: float) -> RegistrationResult:
+        """Stage 9: the chosen pose's scores, covariance, unconstrained motions and confidence (the calibrated
+        probability, else the overlap score, times the degeneracy factor), in input units."""
+        T_n, inlier_ratio = choice.transform, choice.inlier_ratio
+        fitness, rmse_n = check.fitness(T_n)
+        tight_fitness = check.tight(T_n)
         t1 = time.perf_counter()
         T = p.to_input_units(T_n)
         origin_n = (T[:3, 3] - p.offset) / p.scale  # the pose's position, normalised frame
         moved = apply_transform(T_n, p.dense_src.astype(np.float64))
-        covariance = pose_covariance(moved, p.target_index, origin_n, distance, COVARIANCE_INFLATION,
+        covariance = pose_covariance(moved, p.target_index, origin_n, check.distance, COVARIANCE_INFLATION,
                                      (COVARIANCE_FLOOR_M, COVARIANCE_FLOOR_RAD),
                                      scale=p.scale)  # in the normalised frame (the fitness' index), metric
-        unconstrained, constrained = unconstrained_directions(moved, p.target_index, distance)
-        shares = overlap_shares(p.dense_src, p.target_index, T_n, np.multiply(SPACINGS, p.target_index.spacing))
-        verification = features(shares, inlier_ratio, constrained)  # 8. confidence
-        probability = constrained * (self.calibration.probability(verification, cfg.refine.method) if self.calibrated
+        unconstrained, constrained = unconstrained_directions(moved, p.target_index, check.distance)
+        verification = features(check.shares(T_n), inlier_ratio, constrained)
+        probability = constrained * (check.calibration.probability(verification, check.refine_method)
+                                     if check.calibration is not None
                                      else confidence(fitness, tight_fitness, inlier_ratio))
         a_gen = p.points_to_input_units(est.source_generated[k].double().cpu().numpy())
         b_gen = p.points_to_input_units(est.target_generated[k].double().cpu().numpy())
@@ -340,7 +345,7 @@ class Registrar:
             inlier_ratio=inlier_ratio,
             inlier_rmse=rmse_n * p.scale,
             confidence=probability,
-            start=start,
+            start=choice.start,
             covariance=covariance,
             unconstrained=unconstrained,
             verification=dict(zip(FEATURES, verification.tolist(), strict=True)),

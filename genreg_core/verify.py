@@ -1,0 +1,72 @@
+"""Pipeline stage "verify": how well a candidate pose of one prepared pair explains the clouds.
+
+Every score of a pair is taken in the pair's normalised frame against its one target index
+(`PreparedPair.target_index`): the overlap shares (`score.overlap_fitness`, `score.overlap_shares`), the
+agreement of the network's generated correspondences with the pose (their inlier ratio), and the
+calibrated probability that the pose is right (`genreg_core.confidence`), which chooses among PDSAC's
+modes. Frames and units: `genreg_core.geometry`.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from genreg_core.confidence import SPACINGS, ConfidenceModel, features
+from genreg_core.pdsac import union_inlier_share
+from genreg_core.prepare import PreparedPair
+from genreg_core.score import TIGHT_SPACINGS, fitness_distance, overlap_fitness, overlap_shares
+
+
+@dataclass
+class Verifier:
+    """The scores of candidate poses T (normalised frame, b ~ T a) of one pair: `pair`, the network's
+    generated clouds for it (A_g, B_g: (N, 3) tensors), PDSAC's inlier threshold `tau` in that frame, and
+    the calibration serving the pair's refinement (None: no calibrated probability)."""
+
+    pair: PreparedPair
+    source_generated: torch.Tensor
+    target_generated: torch.Tensor
+    tau: float
+    calibration: ConfidenceModel | None = None
+    refine_method: str = "none"
+
+    @property
+    def distance(self) -> float:
+        """The fitness radius: `score.FITNESS_SPACINGS` target spacings."""
+        return fitness_distance(self.pair.target_index)
+
+    def fitness(self, T: np.ndarray) -> tuple[float, float]:
+        """(share of the source within the fitness radius, their RMS distance)."""
+        return overlap_fitness(self.pair.dense_src, self.pair.target_index, T, self.distance)
+
+    def tight(self, T: np.ndarray) -> float:
+        """The share of the source within one target spacing."""
+        p = self.pair
+        return overlap_fitness(p.dense_src, p.target_index, T, TIGHT_SPACINGS * p.target_index.spacing)[0]
+
+    def closer(self, T_a: np.ndarray, T_b: np.ndarray, margin: float = 0.0) -> bool:
+        """Whether T_a puts a larger share (by more than `margin`) of the source within one spacing (not
+        three: there a wrong pose that pushes a partial source's unmatched part onto the target can
+        overlap more than the true one; MODEL_CARD "guard")."""
+        return self.tight(T_a) > self.tight(T_b) + margin
+
+    def shares(self, T: np.ndarray) -> np.ndarray:
+        """The shares of the source within each of `confidence.SPACINGS` target spacings."""
+        p = self.pair
+        return overlap_shares(p.dense_src, p.target_index, T, np.multiply(SPACINGS, p.target_index.spacing))
+
+    def agreement(self, T: np.ndarray) -> float:
+        """The inlier ratio of the generated correspondences (both directions) under T."""
+        p = self.pair
+        T_k = torch.from_numpy(T)[None].to(self.source_generated.dtype)
+        return float(union_inlier_share(T_k, torch.from_numpy(p.a)[None], self.source_generated[None],
+                                        torch.from_numpy(p.b)[None], self.target_generated[None], self.tau)[0])
+
+    def probability(self, T: np.ndarray, inlier_ratio: float | None = None, constraint: float = 1.0) -> float:
+        """The calibrated probability that T is right (a calibration is needed), from its shares, the
+        inlier ratio (default: `agreement`) and the degeneracy factor."""
+        ratio = self.agreement(T) if inlier_ratio is None else inlier_ratio
+        return self.calibration.probability(features(self.shares(T), ratio, constraint), self.refine_method)
