@@ -357,10 +357,18 @@ MODE_TRANSLATION = 0.1  # `distinct_modes`: translations this far apart (normali
 
 
 @torch.no_grad()
-def distinct_modes(T: torch.Tensor, res_a: PDSACResult, res_b: PDSACResult, src: torch.Tensor, dst: torch.Tensor,
-                   cfg: PDSACConfig, weights: torch.Tensor | None = None) -> torch.Tensor:
-    """Up to `cfg.modes` - 1 other modes of the hypotheses of both directions (B, M, 4, 4), b ~ T a: in order
-    of their PDSAC scores, each hypothesis whose rotation differs by more than `cfg.mode_separation` deg, or
+def both_directions(res_a: PDSACResult, res_b: PDSACResult) -> tuple[torch.Tensor, torch.Tensor]:
+    """The hypotheses of both directions as transforms source A -> target B (B, 2m, 4, 4), A's first, then
+    B's inverted, and their scores (B, 2m)."""
+    return (torch.cat([res_a.hypotheses, invert_transform(res_b.hypotheses)], dim=1),
+            torch.cat([res_a.scores, res_b.scores], dim=1))
+
+
+def distinct_modes(T: torch.Tensor, hypotheses: torch.Tensor, scores: torch.Tensor, src: torch.Tensor,
+                   dst: torch.Tensor, cfg: PDSACConfig, weights: torch.Tensor | None = None) -> torch.Tensor:
+    """Up to `cfg.modes` - 1 other modes among `hypotheses` (B, M, 4, 4), b ~ T a, with PDSAC `scores`
+    (B, M; `both_directions`): in order of their scores, each hypothesis whose rotation differs by more than
+    `cfg.mode_separation` deg, or
     its translation by more than `MODE_TRANSLATION`, from `T` (B, 4, 4) and every mode kept before it, refit
     on its inliers among the union correspondences `src`, `dst` (B, 2N, 3) as the winner is (`refit_on_inliers`
     with the tightening rounds). Slots without a distinct mode repeat `T`."""
@@ -368,8 +376,7 @@ def distinct_modes(T: torch.Tensor, res_a: PDSACResult, res_b: PDSACResult, src:
     modes = T[:, None].repeat(1, max(count, 0), 1, 1)
     if count <= 0:
         return modes
-    hypotheses = torch.cat([res_a.hypotheses, invert_transform(res_b.hypotheses)], dim=1)
-    order = torch.cat([res_a.scores, res_b.scores], dim=1).argsort(dim=1)
+    order = scores.argsort(dim=1)
     cos_limit = float(np.cos(np.radians(cfg.mode_separation)))
     for b in range(B):
         H = hypotheses[b, order[b]].to(T.dtype)

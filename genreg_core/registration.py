@@ -25,7 +25,7 @@ from __future__ import annotations
 
 import os
 import time
-from collections.abc import Iterator, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass, field, replace
 
@@ -38,6 +38,7 @@ from genreg_core.config import OBJECT_MODEL, PDSACConfig, RefineConfig, Registra
 from genreg_core.fallback import fallback
 from genreg_core.geometry import apply_transform
 from genreg_core.pdsac import (
+    both_directions,
     distinct_modes,
     pdsac_bidirectional,
     seeded_generator,
@@ -117,13 +118,28 @@ class Estimate:
     source_generated: torch.Tensor  # A_g (B, N, 3), in b's frame
     target_generated: torch.Tensor  # B_g (B, N, 3), in a's frame
     inliers: torch.Tensor  # (B, 2N) bool: union correspondences within PDSAC's threshold of `transform`
-    modes: torch.Tensor  # (B, modes - 1, 4, 4): other distinct hypotheses, refit (`pdsac.distinct_modes`)
+    hypotheses: torch.Tensor  # (B, 2m, 4, 4): PDSAC's hypotheses of both directions (`pdsac.both_directions`)
+    scores: torch.Tensor  # (B, 2m): their PDSAC scores (lower is better)
+    overlap: torch.Tensor | None  # (B, 2N): the union correspondences' overlap weights (None: unweighted)
 
     @staticmethod
     def cat(parts: Sequence[Estimate]) -> Estimate:
         """One batch from several."""
-        return Estimate(*(torch.cat([getattr(e, f) for e in parts]) for f in
-                          ("transform", "source_generated", "target_generated", "inliers", "modes")))
+        joined = [torch.cat([getattr(e, f) for e in parts]) for f in
+                  ("transform", "source_generated", "target_generated", "inliers", "hypotheses", "scores")]
+        overlap = None if parts[0].overlap is None else torch.cat([e.overlap for e in parts])
+        return Estimate(*joined, overlap)
+
+    def modes(self, k: int, a: np.ndarray, b: np.ndarray, pdsac: PDSACConfig) -> np.ndarray:
+        """Pair k's other distinct modes (`pdsac.distinct_modes`, (modes - 1, 4, 4), float64) for its
+        normalised network inputs `a`, `b` and the PDSAC settings in its frame."""
+        src, dst = union_correspondences(torch.from_numpy(a)[None], self.source_generated[k: k + 1],
+                                         torch.from_numpy(b)[None], self.target_generated[k: k + 1])
+        weights = None if self.overlap is None else self.overlap[k: k + 1]
+        with torch.inference_mode():
+            modes = distinct_modes(self.transform[k: k + 1], self.hypotheses[k: k + 1], self.scores[k: k + 1],
+                                   src, dst, pdsac, weights)
+        return modes[0].double().cpu().numpy()
 
 
 COARSE_POINTS = 1000  # `verified_mode` refines the other modes on this many source points first
@@ -150,18 +166,17 @@ def overlap_score(check: Verifier, choice: Choice) -> float:
     return confidence(check.fitness(choice.transform)[0], check.tight(choice.transform), choice.inlier_ratio)
 
 
-def verified_mode(check: Verifier, target: object, T_best: np.ndarray, start: np.ndarray, modes: np.ndarray,
-                  refine_cfg: RefineConfig, below: float = 1.0) -> np.ndarray:
-    """GenReg's refined estimate `T_best` or another PDSAC mode (`pdsac.distinct_modes`, (K, 4, 4)), whichever
-    is more probably right (`Verifier.probability`). Only when `T_best` scores below `below`: a confident
-    estimate costs nothing more. Each mode other than `T_best`'s `start` is refined coarsely
+def verified_mode(check: Verifier, target: object, T_best: np.ndarray, start: np.ndarray,
+                  find_modes: Callable[[], np.ndarray], refine_cfg: RefineConfig, below: float = 1.0) -> np.ndarray:
+    """GenReg's refined estimate `T_best` or another PDSAC mode (`find_modes()`: `Estimate.modes`, (K, 4, 4)),
+    whichever is more probably right (`Verifier.probability`). Only when `T_best` scores below `below`: a
+    confident estimate costs nothing more, not even the search for the modes. Each mode other than `T_best`'s `start` is refined coarsely
     (`COARSE_POINTS` source points, `COARSE_ITERATIONS` iterations), the best of them fully; it replaces
     `T_best` only if it then verifies better. Without refinement the modes are compared as they are."""
-    if not len(modes):
-        return T_best
     best_score = check.probability(T_best)
     if best_score >= below:
         return T_best
+    modes = find_modes()
     refining = refine_cfg.method != "none"
     dense_src = check.pair.dense_src
     coarse_src = dense_src[:: max(1, len(dense_src) // COARSE_POINTS)]
@@ -253,16 +268,15 @@ class Registrar:
             match = self.model.interact(enc)  # 3. interact
             out = self.model.generate(enc, match)  # 4. generate
             t1 = time.perf_counter()
-            T, res_a, res_b, inliers = pdsac_bidirectional(  # 5. PDSAC
-                a, out.source_generated, b, out.target_generated, pdsac, generator, out.overlap())
             overlap = out.overlap()
-            modes = distinct_modes(T, res_a, res_b, *union_correspondences(a, out.source_generated, b,
-                                                                           out.target_generated),
-                                   pdsac, None if overlap is None else torch.cat(overlap, dim=1))
+            T, res_a, res_b, inliers = pdsac_bidirectional(  # 5. PDSAC
+                a, out.source_generated, b, out.target_generated, pdsac, generator, overlap)
+            hypotheses, scores = both_directions(res_a, res_b)  # its other modes, when asked (Estimate.modes)
         if timings is not None:
             timings["network"] = timings.get("network", 0.0) + t1 - t0
             timings["pdsac"] = timings.get("pdsac", 0.0) + time.perf_counter() - t1
-        return Estimate(T, out.source_generated, out.target_generated, inliers, modes)
+        return Estimate(T, out.source_generated, out.target_generated, inliers, hypotheses, scores,
+                        None if overlap is None else torch.cat(overlap, dim=1))
 
     def refine_and_score(self, p: PreparedPair, est: Estimate, k: int, shared: dict[str, float]
                          ) -> RegistrationResult:
@@ -289,7 +303,7 @@ class Registrar:
         T = refine(p.dense_src, target, winner, cfg.refine) if refining else winner
         choice = Choice(T, "genreg", float(est.inliers[k].float().mean()))
         if check.calibration is not None and p.init is None:
-            mode = verified_mode(check, target, T, winner, est.modes[k].double().cpu().numpy(), cfg.refine,
+            mode = verified_mode(check, target, T, winner, lambda: est.modes(k, p.a, p.b, cfg.pdsac), cfg.refine,
                                  cfg.pdsac.modes_below)
             if mode is not T:
                 choice = Choice(mode, "genreg", check.agreement(mode))

@@ -13,7 +13,7 @@ from genreg_core.config import SCENE_REGISTRATION, PDSACConfig
 from genreg_core.data import FramePairs, RGBDSequence
 from genreg_core.geometry import rotation_angle
 from genreg_core.metrics import transform_errors
-from genreg_core.pdsac import PDSACResult, distinct_modes
+from genreg_core.pdsac import PDSACResult, both_directions, distinct_modes
 from genreg_core.registration import Registrar
 
 
@@ -33,12 +33,14 @@ def test_distinct_modes_are_apart_in_score_order_and_refit_on_their_inliers():
     scores = torch.arange(len(angles), dtype=torch.float64)[None]
     res = PDSACResult(hypotheses[:, 0], hypotheses, scores, torch.softmax(-scores, 1), torch.ones(1, 200, dtype=bool))
     empty = PDSACResult(hypotheses[:, 0], hypotheses[:, :0], scores[:, :0], scores[:, :0], res.inliers)
+    both, both_scores = both_directions(res, empty)
     cfg = PDSACConfig(modes=4, mode_separation=15.0, inlier_threshold=0.05)
-    modes = distinct_modes(about_z(0.0)[None], res, empty, src, dst, cfg)
+    modes = distinct_modes(about_z(0.0)[None], both, both_scores, src, dst, cfg)
     found = [float(np.degrees(rotation_angle(M[:3, :3].numpy()))) for M in modes[0]]
     assert np.allclose(found[:2], [33.0, 60.0], atol=1e-6)  # 31 refit to 33 on its inliers; 5 and 62 are near others
     assert abs(found[2] - 120.0) < 1e-6
-    assert distinct_modes(about_z(0.0)[None], res, empty, src, dst, dataclasses.replace(cfg, modes=1)).shape == (1, 0, 4, 4)
+    assert distinct_modes(about_z(0.0)[None], both, both_scores, src, dst,
+                          dataclasses.replace(cfg, modes=1)).shape == (1, 0, 4, 4)
 
 
 def test_a_pair_whose_pdsac_winner_is_wrong_is_saved_by_a_verified_mode():
