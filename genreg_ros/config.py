@@ -6,11 +6,12 @@ groups below. A ROS parameter's name is the setting's dotted path (`settings(Nod
 `refine.max_iterations`; `genreg_ros.params` declares and validates them as ROS parameters (the only
 module that needs rclpy), and the params files are generated from the same list:
 
-    python -m genreg_ros.config --write     # after changing a setting: rewrites both files in config/
+    python -m genreg_ros.config --write     # after changing a setting: rewrites the files in config/
     python -m genreg_ros.config --check     # exit 1 if a shipped params file is out of date
 
-Two params files are generated from the one list: `config/genreg.yaml` (depth-camera scenes: the core's
-scene preset `SCENE_REGISTRATION`, the scene model and two workers: `SCENE_OVERRIDES` below) and
+Three params files are generated from the one list: `config/genreg.yaml` (depth-camera scenes: the core's
+scene preset `SCENE_REGISTRATION`, the scene model and two workers: `SCENE_OVERRIDES` below),
+`config/genreg_map.yaml` (map mode: the scene settings, one worker, a latched map: `MAP_OVERRIDES`) and
 `config/genreg_objects.yaml` (object models: the plain defaults). This module does not import rclpy: it
 holds the settings, the ROS form of a setting's value (`to_ros` / `from_ros`) and the generator.
 
@@ -110,8 +111,9 @@ class SyncParams:
 class QosParams:
     """Quality of service of the subscriptions and the outputs."""
 
-    reliability: str = setting("best_effort", "Subscription reliability: best_effort (sensor data, accepts "
-                               "both kinds of publisher) or reliable.", choices=RELIABILITIES, start_up=True)
+    reliability: str = setting("best_effort", "Reliability of the source subscription (and of the target's "
+                               "with target_reliability same): best_effort (sensor data, accepts both kinds of "
+                               "publisher) or reliable.", choices=RELIABILITIES, start_up=True)
     depth: int = setting(5, "Subscription history depth.", low=1, high=100, start_up=True)
     publisher_reliability: str = setting("reliable", "Reliability of the output topics.", choices=RELIABILITIES,
                                          start_up=True)
@@ -119,9 +121,31 @@ class QosParams:
                                      "receives a latched map published before the node started (use it with "
                                      "a reliable, transient_local publisher).", choices=DURABILITIES,
                                      start_up=True)
+    target_reliability: str = setting("same", "Reliability of the target subscription: same (as reliability), "
+                                      "best_effort or reliable. A latched map (target_durability "
+                                      "transient_local) needs reliable; the source keeps its own.",
+                                      choices=("same", *RELIABILITIES), start_up=True)
 
     def __post_init__(self) -> None:
         check_ranges(self, "qos.")
+
+
+@dataclass(frozen=True)
+class MapParams:
+    """Map mode: each source scan localised in a prior map (`genreg_ros.mapping`, the core's MapLocalizer)."""
+
+    enabled: bool = setting(False, "Map mode: localise each source scan in the map (target_file, or the newest "
+                            "target_cloud, e.g. a latched map) with MapLocalizer: without a guess on the first "
+                            "scan, after ~/relocalize and when tracking is lost; otherwise from the last "
+                            "accepted pose. The map is not preprocessed; needs workers 1.", start_up=True)
+    lost_confidence: float = setting(0.5, "A scan whose confidence (probability that the pose is right) is "
+                                     "below this, or that is not published, is a miss.", low=0.0, high=1.0)
+    lost_after: int = setting(2, "Tracking is lost after this many misses in a row: the next scan is "
+                              "localised without a guess (registration_status localization: lost).",
+                              low=1, high=1000)
+
+    def __post_init__(self) -> None:
+        check_ranges(self, "map.")
 
 
 @dataclass(frozen=True)
@@ -157,6 +181,7 @@ class NodeConfig:
     preprocess: PreprocessConfig = setting(PreprocessConfig(), "Range, crop box and voxel grid.")
     sync: SyncParams = setting(SyncParams(), "Stamp pairing.")
     qos: QosParams = setting(QosParams(), "Quality of service.")
+    map: MapParams = setting(MapParams(), "Map mode (relocalisation in a prior map).")
     source_frame: str = setting("", "Source frame id; empty: the source header's frame_id.")
     target_frame: str = setting("", "Target frame id; empty: the target header's frame_id.")
     max_points: int = setting(1_000_000, "Clouds with more points (width * height) are dropped.", low=1,
@@ -194,6 +219,8 @@ class NodeConfig:
         self.initial_guess_matrix()
         if self.target_file and not self.target_frame:
             raise ConfigError("target_file needs target_frame (the file has no frame id)")
+        if self.map.enabled and self.workers != 1:
+            raise ConfigError(f"map.enabled needs workers 1 (scans are localised in the node's process), got {self.workers}")
 
     def registration_config(self) -> RegistrationConfig:
         """The core's RegistrationConfig: the groups pdsac, refine and fallback, and the `registration` scalars."""
@@ -245,8 +272,14 @@ CONFIG_DIR = Path(__file__).resolve().parent.parent / "config"
 # pairs need both cores (scripts/bench_node.py soak)
 SCENE_OVERRIDES: dict[str, Any] = {"model.checkpoint": SCENE_MODEL, **registration_overrides(SCENE_REGISTRATION),
                                    "workers": 2}
+# Map mode: the scene profile localising scans in a prior map, in the node's process (workers 1); the map
+# latched (reliable, transient_local), the camera best effort (SensorDataQoS)
+MAP_OVERRIDES: dict[str, Any] = {**SCENE_OVERRIDES, "workers": 1, "map.enabled": True,
+                                 "qos.target_reliability": "reliable", "qos.target_durability": "transient_local"}
 PROFILES: dict[str, tuple[str, dict[str, Any]]] = {
     "genreg.yaml": (f"depth-camera and indoor scenes (the scene model {SCENE_MODEL})", SCENE_OVERRIDES),
+    "genreg_map.yaml": (f"map mode: depth-camera scans localised in a prior map (the scene model {SCENE_MODEL})",
+                        MAP_OVERRIDES),
     "genreg_objects.yaml": (f"object models (the object model {OBJECT_MODEL}, clouds of a single object)", {}),
 }
 YAML_HEADER = """\

@@ -29,7 +29,7 @@ class Stats:
         self.lost: Counter[str] = Counter()  # topic -> messages the middleware reported lost
         self.dropped: Counter[str] = Counter()
         self.failed: Counter[str] = Counter()
-        self.events: Counter[str] = Counter()  # time_jump, reset
+        self.events: Counter[str] = Counter()  # time_jump, reset; map mode: relocalize, tracking_lost
         self.registered = 0
         self.low_confidence = 0  # registered and published, but below warn_confidence
         self.paired = 0  # pairs formed by the sync; each is registered, failed, dropped or superseded
@@ -111,12 +111,13 @@ class Snapshot:
 
 def build_status(s: Snapshot, now: float, name: str, hardware_id: str, stale_timeout: float,
                  warn_confidence: float, state: str = "active", fixed_target: bool = False,
-                 notes: list[str] | None = None) -> tuple[DiagnosticStatus, dict[str, str]]:
+                 notes: list[str] | None = None, localization: str = "") -> tuple[DiagnosticStatus, dict[str, str]]:
     """The node's DiagnosticStatus, and a note per stale topic ({"source": "no new source cloud for 3.1 s"}).
 
     `state` is the lifecycle state: topics are checked only when "active". `fixed_target` (a target file,
     or a latched target in latest_target mode): the target topic is not expected to update. `notes` are
-    WARN reasons of the caller (e.g. a matched publisher that delivers nothing)."""
+    WARN reasons of the caller (e.g. a matched publisher that delivers nothing). `localization`: map mode's
+    state (global, tracking, lost; "" when map mode is off); lost is a WARN."""
     level, stale = DiagnosticStatus.OK, {}
     notes = list(notes or [])
     if notes:
@@ -139,6 +140,9 @@ def build_status(s: Snapshot, now: float, name: str, hardware_id: str, stale_tim
         level = DiagnosticStatus.WARN
         notes.append(f"last registration has low confidence ({s.last.get('confidence', float('nan')):.2f} < "
                      f"warn_confidence {warn_confidence})")
+    if localization == "lost" and state == "active":
+        level = DiagnosticStatus.WARN
+        notes.append("map mode: tracking lost (the next scan is localised without a guess)")
     dropped, failed = sum(s.dropped.values()), sum(s.failed.values())
     summary = f"registered {s.registered}, dropped {dropped}, failed {failed}"
     if lost := sum(s.lost.values()):
@@ -156,6 +160,8 @@ def build_status(s: Snapshot, now: float, name: str, hardware_id: str, stale_tim
         "paired": s.paired,
         "time_jump": s.events["time_jump"],
         "reset": s.events["reset"],
+        **({"localization": localization, "relocalize": s.events["relocalize"],
+            "tracking_lost": s.events["tracking_lost"]} if localization else {}),
         "latency_ms.last": 1e3 * s.latency[-1] if s.latency else float("nan"),
         "latency_ms.median": _median_ms(s.latency),
         "overhead_ms.median": _median_ms(s.overhead),

@@ -18,8 +18,15 @@ Topics (relative names, remap them):
 - out `generated_cloud` (PointCloud2, if publish_generated): the network's generated source (A_g) in the
   target frame;
 - out `/diagnostics` (diagnostic_msgs/DiagnosticArray): latency, fitness, counts and their reasons.
-Services: the lifecycle services (`<node>/change_state`, `<node>/get_state`, ...) and `<node>/reset`
-(std_srvs/Trigger: forget tracking, guesses and pairing state).
+Services: the lifecycle services (`<node>/change_state`, `<node>/get_state`, ...), `<node>/reset`
+(std_srvs/Trigger: forget tracking, guesses and pairing state) and `<node>/relocalize` (std_srvs/Trigger, map
+mode: localise the next scan without a guess).
+
+Map mode (`map.enabled`): the target (`target_file`, or the newest `target_cloud`, e.g. a latched map) is a
+prior map and each source scan is localised in it with the core's MapLocalizer (in the node's process,
+`workers` 1): without a guess on the first scan, after `~/relocalize` and when tracking is lost, else from
+the last accepted pose or a topic guess (`genreg_ros.mapping`: global -> tracking -> lost -> global);
+`registration_status` carries the state (`localization`). The map is not preprocessed; the scans are.
 
 Lifecycle: configure loads the model (and the target file) and creates the publishers and the worker;
 activate subscribes and enables the publishers; deactivate unsubscribes; cleanup releases everything.
@@ -48,7 +55,7 @@ import re
 import sys
 import threading
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
@@ -75,6 +82,7 @@ from genreg_ros import params
 from genreg_ros.config import NodeConfig
 from genreg_ros.conversions import matrix_to_msg, matrix_to_pose_msg, msg_to_matrix, stamp_error, stamp_ns
 from genreg_ros.diagnostics import Stats, build_status
+from genreg_ros.mapping import LOST, TRACKING, Localization, Step, scan_start
 from genreg_ros.pointcloud2 import (
     PointCloud2Error,
     from_cdr,
@@ -275,6 +283,8 @@ class RegisterNode(LifecycleNode):
         self._sync = self._new_sync(c)
         self._newest: dict[str, int | None] = {SOURCE: None, TARGET: None}
         self._tracker = Tracker()  # topic guesses and the last result
+        self._map_state = Localization(c.map.lost_after)  # map mode: global, tracking or lost
+        self._localizer: tuple[np.ndarray, Any, str] | None = None  # map mode: (map points, MapLocalizer, frame)
         self._target_cache: tuple[Any, np.ndarray, PreprocessConfig] | None = None
         self._slot = LatestSlot()
         self._take_lock = threading.Lock()  # a pair's ticket is taken with the pair: publication order
@@ -292,6 +302,7 @@ class RegisterNode(LifecycleNode):
         self._diag_timer = self.create_timer(
             c.diagnostics.period, self._publish_diagnostics, clock=Clock(clock_type=ClockType.STEADY_TIME))
         self._reset_srv = self.create_service(Trigger, "~/reset", self._on_reset)
+        self._relocalize_srv = self.create_service(Trigger, "~/relocalize", self._on_relocalize)
         self.add_pre_set_parameters_callback(params.coerce_arrays)
         self.add_on_set_parameters_callback(params.make_validator(lambda: self._config))
         self.add_post_set_parameters_callback(self._on_params_set)
@@ -354,9 +365,8 @@ class RegisterNode(LifecycleNode):
 
     def on_activate(self, state: LifecycleState) -> TransitionCallbackReturn:
         c = self._config
-        reliability = ReliabilityPolicy[c.qos.reliability.upper()]
-        sub_qos = QoSProfile(depth=c.qos.depth, reliability=reliability)
-        target_qos = QoSProfile(depth=c.qos.depth, reliability=reliability,
+        sub_qos = QoSProfile(depth=c.qos.depth, reliability=ReliabilityPolicy[c.qos.reliability.upper()])
+        target_qos = QoSProfile(depth=c.qos.depth, reliability=ReliabilityPolicy[self._target_reliability(c).upper()],
                                 durability=DurabilityPolicy[c.qos.target_durability.upper()])
         # clouds arrive serialised (raw=True) and are deserialised by `from_cdr`: 20x faster than rclpy's own
         self._subs[SOURCE] = self._cloud_subscription(SOURCE, sub_qos)
@@ -372,12 +382,19 @@ class RegisterNode(LifecycleNode):
         self._silent_warned.clear()
         target = f"file {c.target_file} ({len(self._fixed.points)} points, frame {self._fixed.frame})" \
             if self._fixed is not None else self._subs[TARGET].topic_name
+        mode = "map mode: localising scans in the map " if c.map.enabled else ""
         self.get_logger().info(
-            f"ready: model {c.model.checkpoint} (N={self.registrar.num_points}, {c.registration.device}, "
+            f"ready: {mode}model {c.model.checkpoint} (N={self.registrar.num_points}, {c.registration.device}, "
             f"{f'{c.workers} worker processes' if c.workers > 1 else 'registering in this process'}), "
-            f"sync {self._sync.mode} slop {c.sync.slop} s, subscription QoS {c.qos.reliability}; "
-            f"listening on {self._subs[SOURCE].topic_name}, target {target}")
+            f"sync {self._sync.mode} slop {c.sync.slop} s, subscription QoS source {c.qos.reliability}, target "
+            f"{self._target_reliability(c)} {c.qos.target_durability}; listening on "
+            f"{self._subs[SOURCE].topic_name}, target {target}")
         return super().on_activate(state)
+
+    @staticmethod
+    def _target_reliability(c: NodeConfig) -> str:
+        """The target subscription's reliability: qos.target_reliability, or qos.reliability for same."""
+        return c.qos.reliability if c.qos.target_reliability == "same" else c.qos.target_reliability
 
     def _cloud_subscription(self, topic: str, qos: QoSProfile):
         """The `<topic>_cloud` subscription (serialised messages), counting the messages the middleware
@@ -426,7 +443,7 @@ class RegisterNode(LifecycleNode):
             self.destroy_lifecycle_publisher(pub)
         self._pubs.clear()
         self._close_registrars()
-        self._tf_broadcaster, self._fixed, self._target_cache = None, None, None
+        self._tf_broadcaster, self._fixed, self._target_cache, self._localizer = None, None, None, None
         self._reset_state("cleanup", count=False)
 
     # ----------------------------------------------------------------- start-up
@@ -494,9 +511,11 @@ class RegisterNode(LifecycleNode):
 
     # ----------------------------------------------------------------- parameters and state
     def _new_sync(self, c: NodeConfig) -> PairSync:
-        """A PairSync for `c`; with a target file it holds that file as the latest target."""
+        """A PairSync for `c`; with a target file it holds that file as the latest target. Map mode pairs each
+        scan with the newest map (latest_target)."""
         fixed = getattr(self, "_fixed", None)
-        sync = PairSync(c.sync.slop, c.sync.queue_size, "latest_target" if fixed is not None else c.sync.mode)
+        mode = "latest_target" if fixed is not None or c.map.enabled else c.sync.mode
+        sync = PairSync(c.sync.slop, c.sync.queue_size, mode)
         if fixed is not None:
             sync.add_target(0, fixed)
         return sync
@@ -505,7 +524,7 @@ class RegisterNode(LifecycleNode):
         config = params.merged(self._config, changed)  # already validated by the on-set callback
         sync_changed = config.sync != self._config.sync
         self._config = config  # replaced, never mutated: readers take one consistent snapshot
-        if sync_changed:
+        if sync_changed and not config.map.enabled:  # map mode keeps its map (latest_target ignores the rest)
             with self._lock:
                 self._sync = self._new_sync(config)
 
@@ -516,6 +535,7 @@ class RegisterNode(LifecycleNode):
             self._sync.clear(keep_latest_target=self._sync.mode == "latest_target" and why != "cleanup")
             self._newest = {SOURCE: None, TARGET: None}
             self._tracker.reset()
+            self._map_state.relocalize()
         if self._slot.put(None) is not None:
             self._drop("reset", f"a waiting pair was discarded ({why})")
         if count:
@@ -526,6 +546,22 @@ class RegisterNode(LifecycleNode):
         self.get_logger().info("reset: tracking, guesses and pairing state cleared")
         response.success, response.message = True, "tracking, guesses and pairing state cleared"
         return response
+
+    def _on_relocalize(self, request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
+        if not self._config.map.enabled:
+            response.success, response.message = False, "map mode is off (map.enabled false): nothing to relocalise"
+            return response
+        self._relocalize("relocalize service")
+        response.success, response.message = True, "the next scan is localised in the map without a guess"
+        return response
+
+    def _relocalize(self, why: str) -> None:
+        """Map mode: forget the pose and topic guesses; the next scan is localised globally."""
+        with self._lock:
+            self._tracker.reset()
+            self._map_state.relocalize()
+        self._stats.event("relocalize")
+        self.get_logger().info(f"relocalize ({why}): the next scan is localised in the map without a guess")
 
     # ----------------------------------------------------------------- callbacks (short)
     def _on_cloud(self, topic: str, msg: PointCloud2 | bytes) -> None:
@@ -617,19 +653,35 @@ class RegisterNode(LifecycleNode):
     def _process(self, pair: Pair, registrar: Any) -> _Publication | None:
         """Decode, preprocess, register and judge one pair: what to publish (a rejected result: its status
         alone), or None (dropped or failed: counted)."""
-        c, generation = self._config, self._tracker.generation
+        c = self._config
         prepared = self._prepare(pair, c)
         if prepared is None:
             return None
         t0 = time.perf_counter()
-        start = self._start(c, pair)
-        target_points = self._crop(c, prepared, start.T)
-        t1 = time.perf_counter()
-        result = self._register(registrar, c, prepared.source_points, target_points, start.T)
+        if c.map.enabled:  # localised in the map: the map state chooses the start
+            localizer = self._map_localizer(registrar, c, prepared.target_points, pair.target.frame)
+            generation = self._tracker.generation
+            if localizer is None:
+                return None
+            step, start = self._map_start(c, pair)
+            target_points = prepared.target_points
+            t1 = time.perf_counter()
+            result = self._localize(localizer, prepared.source_points, start.T)
+        else:
+            generation, step = self._tracker.generation, None
+            start = self._start(c, pair)
+            target_points = self._crop(c, prepared, start.T)
+            t1 = time.perf_counter()
+            result = self._register(registrar, c, prepared.source_points, target_points, start.T)
         if result is None:
+            if step is not None:
+                self._map_outcome(c, step, hit=False)
             return None
         t2 = time.perf_counter()
         verdict = judge(result, c)
+        if step is not None:
+            hit = verdict.publish and result.confidence >= c.map.lost_confidence
+            verdict = replace(verdict, localization=self._map_outcome(c, step, hit))
         header = Header(stamp=Time(nanoseconds=pair.source_stamp).to_msg(), frame_id=pair.target.frame)
         latency = time.monotonic() - max(pair.source.received, pair.target.received)
         status = self._result_status(result, header, pair.source.frame, start.origin, latency, verdict)
@@ -641,9 +693,68 @@ class RegisterNode(LifecycleNode):
                        f"warn_confidence {c.warn_confidence} (fitness {result.fitness:.2f})")
         self._tracker.record(result.transformation, pair.source_stamp, generation, time.monotonic())
         timings = _figures(prepared, target_points, result, t1 - t0, t2 - t1)
+        # the API moved the registered points; MapLocalizer's are the scan voxelised to the map's resolution
+        registered_decoded = not c.map.enabled and prepared.source_points is prepared.source.points
         return _Publication(status, _Outputs(header, prepared.source, pair.source.frame, result, latency,
-                                             prepared.decode_s, timings, verdict.low_confidence,
-                                             prepared.source_points is prepared.source.points))
+                                             prepared.decode_s, timings, verdict.low_confidence, registered_decoded))
+
+    # ----------------------------------------------------------------- map mode
+    def _map_localizer(self, registrar: Any, c: NodeConfig, map_points: np.ndarray, frame: str) -> Any:
+        """The MapLocalizer of this map (built on the first scan after a new map or new registration settings,
+        with the node's registrar); a map in another frame than the last one relocalises. None if the map
+        cannot be used (counted as failed)."""
+        from genreg_core.localization import MapLocalizer
+
+        if registrar.config != (cfg := c.registration_config()):
+            registrar.config = cfg
+            self._localizer = None  # its screening settings derive from the registrar's
+        cached = self._localizer
+        if cached is not None and cached[0] is map_points:
+            return cached[1]
+        try:
+            localizer = MapLocalizer(map_points, registrar=registrar)
+        except GenRegError as exc:
+            self._fail(failure_reason(exc), f"the map cannot be used: {exc}")
+            return None
+        if cached is not None and cached[2] != frame:
+            self._relocalize(f"the map's frame changed from '{cached[2]}' to '{frame}'")
+        self._localizer = (map_points, localizer, frame)
+        self.get_logger().info(f"map of {len(map_points)} points in frame '{frame}' ready (resolution "
+                               f"{localizer.voxel_size:.3g} m)")
+        return localizer
+
+    def _map_start(self, c: NodeConfig, pair: Pair) -> tuple[Step, Start]:
+        """The map state's step and the scan's start: a topic guess in any state, else in state tracking the
+        last accepted pose, else none (global). The step's mode is how the scan is localised."""
+        step = self._map_state.step()
+        start = self._tracker.start(c, pair.source.frame, pair.target.frame, time.monotonic(), tracking=True,
+                                    parameter=False)
+        if start.discarded == "expired":
+            self.get_logger().info(start.note)
+        elif start.discarded:
+            self._drop(start.discarded, start.note)
+        return scan_start(step, start)
+
+    def _localize(self, localizer: Any, scan: np.ndarray, guess: np.ndarray | None) -> Any:
+        """MapLocalizer's result for the scan (from `guess`, None: globally); None if it failed (counted)."""
+        try:
+            return localizer.localize(scan, initial_guess=guess)
+        except GenRegError as exc:
+            self._fail(failure_reason(exc), f"localisation failed: {exc}")
+            return None
+
+    def _map_outcome(self, c: NodeConfig, step: Step, hit: bool) -> str:
+        """Record a scan's outcome in the map state; the state it is reported in (logged when it changes)."""
+        before = self._map_state.state
+        state = self._map_state.update(step, hit, c.map.lost_after)
+        after = self._map_state.state
+        if after == LOST and before != LOST:
+            self._stats.event("tracking_lost")
+            self.get_logger().warning(f"map mode: tracking lost after {self._map_state.misses} missed scan(s) "
+                                      "(map.lost_after); the next scan is localised without a guess")
+        elif after == TRACKING and before != TRACKING:
+            self.get_logger().info(f"map mode: localised ({step.mode}), tracking")
+        return state
 
     def _prepare(self, pair: Pair, c: NodeConfig) -> _Prepared | None:
         """The pair's clouds decoded and preprocessed; None if one cannot be decoded (counted)."""
@@ -654,8 +765,9 @@ class RegisterNode(LifecycleNode):
             self._drop(exc.reason, f"source cloud: {exc}")
             return None
         t1 = time.perf_counter()
-        try:
-            target_points, t_target = self._decode_target(pair.target, c.max_points, c.preprocess)
+        try:  # a map (map mode) is not preprocessed: range and crop settings are the sensor's
+            target_points, t_target = self._decode_target(pair.target, c.max_points,
+                                                          None if c.map.enabled else c.preprocess)
         except PointCloud2Error as exc:
             self._drop(exc.reason, f"target cloud: {exc}")
             return None
@@ -736,7 +848,7 @@ class RegisterNode(LifecycleNode):
     def _result_status(self, result: Any, header: Header, source_frame: str, guess_origin: str, latency: float,
                        verdict: Verdict) -> DiagnosticArray:
         """The per-result `registration_status` message (header: the source stamp and the target frame); its
-        level and message are the verdict's (`genreg_ros.policy`)."""
+        level and message are the verdict's (`genreg_ros.policy`); in map mode it says the localisation state."""
         values = {
             "confidence": f"{result.confidence:.4f}", "fitness": f"{result.fitness:.4f}",
             "tight_fitness": f"{result.tight_fitness:.4f}", "inlier_ratio": f"{result.inlier_ratio:.4f}",
@@ -745,6 +857,8 @@ class RegisterNode(LifecycleNode):
             "source_frame": source_frame, "target_frame": header.frame_id, "latency_ms": f"{1e3 * latency:.1f}",
             "degenerate": str(verdict.degenerate).lower(), "unconstrained": "; ".join(verdict.unconstrained),
         }
+        if verdict.localization:
+            values["localization"] = verdict.localization
         status = DiagnosticStatus(level=_LEVELS[verdict.level], name=f"{self.get_name()}: result",
                                   message=verdict.message,
                                   hardware_id=self.get_fully_qualified_name(),
@@ -752,9 +866,9 @@ class RegisterNode(LifecycleNode):
         return DiagnosticArray(header=header, status=[status])
 
     def _decode_target(self, target: _Cloud | _FixedTarget, max_points: int,
-                       pre: PreprocessConfig) -> tuple[np.ndarray, float]:
-        """Preprocessed target points and the decoding time, cached while the same target is reused
-        (latest_target, target_file)."""
+                       pre: PreprocessConfig | None) -> tuple[np.ndarray, float]:
+        """Preprocessed target points (`pre` None: as decoded) and the decoding time, cached while the same
+        target is reused (latest_target, target_file, map mode)."""
         key = target.msg if isinstance(target, _Cloud) else target
         cache = self._target_cache
         if cache is not None and cache[0] is key and cache[2] == pre:
@@ -762,7 +876,7 @@ class RegisterNode(LifecycleNode):
         t0 = time.perf_counter()
         points = read_points(target.msg, max_points).points if isinstance(target, _Cloud) else target.points
         t_decode = time.perf_counter() - t0
-        points = preprocess(points, pre)
+        points = points if pre is None else preprocess(points, pre)
         self._target_cache = (key, points, pre)
         return points, t_decode
 
@@ -802,7 +916,8 @@ class RegisterNode(LifecycleNode):
         fixed = self._fixed is not None or (self._sync.mode == "latest_target" and snap.last_arrival[TARGET] is not None)
         silent = self._silent_publishers(snap, now, c.diagnostics.stale_timeout, fixed) if state == "active" else []
         status, stale = build_status(snap, now, self.get_name(), self.get_fully_qualified_name(),
-                                     c.diagnostics.stale_timeout, c.warn_confidence, state, fixed, silent)
+                                     c.diagnostics.stale_timeout, c.warn_confidence, state, fixed, silent,
+                                     self._map_state.state if c.map.enabled else "")
         for topic, note in stale.items():
             if topic not in self._stale and topic in self._subs:
                 self.get_logger().warning(f"{note} (topic {self._subs[topic].topic_name})")
@@ -839,14 +954,17 @@ class RegisterNode(LifecycleNode):
                      "above its limit are lost even with it")
             if "best_effort" in kinds:
                 cause += "; or publish the clouds with a reliable publisher (reliability reliable)"
-                if self._config.qos.reliability == "reliable":
+                if self._topic_reliability(topic) == "reliable":
                     cause = ("a best-effort publisher does not match this node's reliable subscription "
-                             "(qos.reliability); " + cause)
+                             f"({'qos.reliability' if topic == SOURCE else 'qos.target_reliability'}); " + cause)
             if last is not None:  # it delivered before
                 stopped = "the publisher stopped publishing (driver stalled, bag ended)"
                 cause = f"{stopped}, or its clouds grew: {cause}" if "best_effort" in kinds else stopped
             self.get_logger().warning(f"{note}: likely cause: {cause}; see {DOCS} (Large clouds)")
         return notes
+
+    def _topic_reliability(self, topic: str) -> str:
+        return self._config.qos.reliability if topic == SOURCE else self._target_reliability(self._config)
 
     # ----------------------------------------------------------------- shutdown
     def close(self) -> None:

@@ -5,6 +5,7 @@ directions and the thresholds min_fitness, min_confidence and warn_confidence, a
 Rejected (not published): fitness below min_fitness (`low_fitness`), else confidence below min_confidence
 (`low_confidence_rejected`). Published with a warning: confidence below warn_confidence. A result whose
 geometry leaves directions unconstrained (the core's `unconstrained`) is published as WARN, `degenerate`.
+In map mode the message starts with the scan's localisation state (`global: published`, `lost: rejected: ...`).
 """
 
 from __future__ import annotations
@@ -26,6 +27,7 @@ class Verdict:
     why: str  # one line: why it was rejected ("" when published)
     low_confidence: bool  # published, below warn_confidence
     unconstrained: tuple[str, ...]  # the directions the geometry leaves free (degenerate when any)
+    localization: str = ""  # map mode: the scan's state (global, tracking, lost; genreg_ros.mapping), else ""
 
     @property
     def degenerate(self) -> bool:
@@ -39,7 +41,8 @@ class Verdict:
     def message(self) -> str:
         text = f"rejected: {self.why}" if not self.publish else \
             "published with low confidence" if self.low_confidence else "published"
-        return f"degenerate: {'; '.join(self.unconstrained)} (target frame); {text}" if self.degenerate else text
+        text = f"degenerate: {'; '.join(self.unconstrained)} (target frame); {text}" if self.degenerate else text
+        return f"{self.localization}: {text}" if self.localization else text
 
 
 def judge(result: Any, config: NodeConfig) -> Verdict:

@@ -79,13 +79,15 @@ class Tracker:
         with self._lock:
             self._guess = TopicGuess(T, parent, child, now, origin)
 
-    def start(self, config: NodeConfig, source_frame: str, target_frame: str, now: float) -> Start:
+    def start(self, config: NodeConfig, source_frame: str, target_frame: str, now: float, *,
+              tracking: bool | None = None, parameter: bool = True) -> Start:
         """The start of a pair mapping `source_frame` into `target_frame` under `config`
-        (initial_guess_timeout, use_last_result_as_guess, initial_guess)."""
+        (initial_guess_timeout, use_last_result_as_guess, initial_guess). `tracking` overrides
+        use_last_result_as_guess; `parameter` False leaves the initial_guess parameter out (map mode)."""
         with self._lock:
             g, last_T, last_time = self._guess, self._last_T, self._last_time
         discarded = note = ""
-        tracking = config.use_last_result_as_guess
+        tracking = config.use_last_result_as_guess if tracking is None else tracking
         if g is not None and config.initial_guess_timeout > 0 and now - g.received > config.initial_guess_timeout:
             discarded = "expired"
             note = (f"{g.origin} guess expired ({now - g.received:.1f} s > initial_guess_timeout "
@@ -102,7 +104,7 @@ class Tracker:
                     self._guess = None
         if tracking and last_T is not None:
             return Start(last_T, "last_result", discarded, note)
-        T = config.initial_guess_matrix()
+        T = config.initial_guess_matrix() if parameter else None
         return Start(T, "none" if T is None else "parameter", discarded, note)
 
     def record(self, T: np.ndarray, source_stamp: int, generation: int, now: float) -> bool:

@@ -1,5 +1,5 @@
-"""register_node's parameters are derived from the config dataclasses; config/genreg.yaml (scenes) and
-config/genreg_objects.yaml (objects) are generated from them."""
+"""register_node's parameters are derived from the config dataclasses; config/genreg.yaml (scenes),
+config/genreg_map.yaml (map mode) and config/genreg_objects.yaml (objects) are generated from them."""
 
 from __future__ import annotations
 
@@ -56,6 +56,17 @@ def test_params_file_names_and_values_match_the_dataclasses(name):
 def test_scene_file_is_for_the_scene_model_and_objects_file_for_the_object_model():
     assert defaults("genreg.yaml")["model.checkpoint"] == SCENE_OVERRIDES["model.checkpoint"] == "7scenes"
     assert defaults("genreg_objects.yaml")["model.checkpoint"] == NodeConfig().model.checkpoint == "modelnet40_dgcnn"
+
+
+def test_map_file_is_the_scene_file_in_map_mode_with_a_latched_map_and_a_sensor_data_camera():
+    scene, mapped = defaults("genreg.yaml"), defaults("genreg_map.yaml")
+    differ = {k for k in scene if scene[k] != mapped[k]}
+    assert differ == {"workers", "map.enabled", "qos.target_reliability", "qos.target_durability"}
+    assert mapped["map.enabled"] and mapped["workers"] == 1
+    # the map latched (reliable + transient_local), the camera best effort (accepts SensorDataQoS publishers)
+    assert (mapped["qos.target_reliability"], mapped["qos.target_durability"]) == ("reliable", "transient_local")
+    assert mapped["qos.reliability"] == "best_effort"
+    assert NodeConfig().qos.target_reliability == "same" and not NodeConfig().map.enabled
 
 
 def test_generating_the_params_files_needs_no_rclpy():

@@ -1,14 +1,21 @@
-"""Initial guesses and tracking of register_node (`genreg_ros.tracking`): pure, no rclpy."""
+"""Initial guesses and tracking of register_node (`genreg_ros.tracking`) and map mode's localisation state
+(`genreg_ros.mapping`): pure, no rclpy."""
 
 from __future__ import annotations
 
 import subprocess
 import sys
 import threading
+from types import SimpleNamespace
 
 import numpy as np
+import pytest
 
-from genreg_ros.config import NodeConfig
+from genreg_core.errors import ConfigError
+from genreg_ros import mapping
+from genreg_ros.config import MapParams, NodeConfig
+from genreg_ros.mapping import GLOBAL, LOST, Localization, scan_start
+from genreg_ros.policy import judge
 from genreg_ros.tracking import Tracker
 
 
@@ -24,7 +31,7 @@ TRACKING = NodeConfig(initial_guess_timeout=5.0, use_last_result_as_guess=True, 
 
 
 def test_policy_and_tracking_need_no_rclpy():
-    code = ("import sys, genreg_ros.policy, genreg_ros.tracking\n"
+    code = ("import sys, genreg_ros.policy, genreg_ros.tracking, genreg_ros.mapping\n"
             "assert not [m for m in sys.modules if m.split('.')[0] == 'rclpy']\n")
     run = subprocess.run([sys.executable, "-c", code], check=False, capture_output=True, text=True, timeout=120)
     assert run.returncode == 0, run.stderr[-2000:]
@@ -115,3 +122,115 @@ def test_concurrent_records_keep_the_newest_stamp():
     for th in threads:
         th.join()
     assert t.last_result[0, 3] == 1999.0
+
+
+# ----------------------------------------------------------------------------- map mode
+MAP = NodeConfig(initial_guess=PARAM)  # map mode ignores the initial_guess parameter
+
+
+class StubLocalizer:
+    """MapLocalizer's interface: `localize(scan, initial_guess)` -> a result with `transformation` and a
+    calibrated `confidence`. The scan is its true pose (4x4); a guess within 0.5 m of it, or no guess on an
+    on-map pose (|x| < 10 m), is placed confidently; anything else gets confidence 0.1 at the guess."""
+
+    def __init__(self) -> None:
+        self.guesses: list[np.ndarray | None] = []
+
+    def localize(self, scan: np.ndarray, initial_guess: np.ndarray | None = None):
+        self.guesses.append(initial_guess)
+        on_map = abs(scan[0, 3]) < 10.0
+        near = initial_guess is None or np.linalg.norm(initial_guess[:3, 3] - scan[:3, 3]) < 0.5
+        ok = on_map and near
+        T = scan if ok else (initial_guess if initial_guess is not None else np.eye(4))
+        return SimpleNamespace(transformation=T, confidence=0.95 if ok else 0.1, fitness=0.9, unconstrained=())
+
+
+class MapDriver:
+    """The node's map-mode steps for one scan, without ROS: step, start, localise, judge, record, update."""
+
+    def __init__(self, lost_after: int = 2) -> None:
+        self.tracker, self.state, self.loc = Tracker(), Localization(lost_after), StubLocalizer()
+        self.stamp = 0
+
+    def scan(self, pose: np.ndarray, now: float = 0.0) -> tuple[str, bool]:
+        """(the state the scan is reported in, whether its pose was published)."""
+        self.stamp += 1
+        generation = self.tracker.generation
+        step, start = scan_start(self.state.step(), self.tracker.start(MAP, "camera", "map", now, tracking=True,
+                                                                          parameter=False))
+        result = self.loc.localize(pose, initial_guess=start.T)
+        verdict = judge(result, MAP)
+        hit = verdict.publish and result.confidence >= MAP.map.lost_confidence
+        if verdict.publish:
+            self.tracker.record(result.transformation, self.stamp, generation, now)
+        return self.state.update(step, hit), verdict.publish
+
+    def relocalize(self) -> None:
+        self.tracker.reset()
+        self.state.relocalize()
+
+
+def test_map_state_global_tracking_lost_global():
+    d = MapDriver(lost_after=2)
+    assert d.state.state == GLOBAL
+    assert d.scan(shift(1.0)) == (GLOBAL, True)  # the first scan: no guess
+    assert d.loc.guesses[-1] is None and d.state.state == mapping.TRACKING
+    assert d.scan(shift(1.2)) == (mapping.TRACKING, True)  # from the last accepted pose
+    assert np.allclose(d.loc.guesses[-1], shift(1.0))
+    assert d.scan(shift(5.0)) == (mapping.TRACKING, False)  # kidnapped: the guess is 3.8 m off, one miss
+    assert d.scan(shift(5.1)) == (LOST, False)  # a second miss: lost
+    assert np.allclose(d.loc.guesses[-1], shift(1.2)), "a rejected pose is never the next guess"
+    assert d.scan(shift(5.2)) == (GLOBAL, True)  # relocalised without a guess
+    assert d.loc.guesses[-1] is None
+    assert d.scan(shift(5.3)) == (mapping.TRACKING, True)
+
+
+def test_off_map_scans_publish_nothing_and_stay_lost_until_one_is_placed():
+    d = MapDriver(lost_after=3)
+    assert d.scan(shift(50.0)) == (GLOBAL, False)  # off the map
+    assert d.scan(shift(50.0)) == (GLOBAL, False)
+    assert d.scan(shift(50.0)) == (LOST, False)  # the third miss in a row
+    assert d.scan(shift(50.0)) == (LOST, False)  # still lost; each is tried globally
+    assert all(g is None for g in d.loc.guesses)
+    assert d.scan(shift(2.0)) == (GLOBAL, True) and d.state.state == mapping.TRACKING and d.state.misses == 0
+
+
+def test_a_hit_between_misses_restarts_the_count():
+    d = MapDriver(lost_after=2)
+    d.scan(shift(1.0))
+    assert d.scan(shift(3.0)) == (mapping.TRACKING, False)
+    assert d.scan(shift(1.1)) == (mapping.TRACKING, True)  # back near the last pose
+    assert d.scan(shift(3.0)) == (mapping.TRACKING, False)  # one miss again, not two
+    assert d.state.state == mapping.TRACKING
+
+
+def test_relocalize_localises_the_next_scan_globally_and_ignores_scans_taken_before():
+    d = MapDriver()
+    d.scan(shift(1.0))
+    step = d.state.step()
+    assert step.mode == mapping.TRACKING
+    d.relocalize()
+    assert d.state.update(step, hit=True) == mapping.TRACKING and d.state.state == GLOBAL  # stale: no effect
+    assert d.state.update(step, hit=False) == mapping.TRACKING and d.state.misses == 0
+    assert d.scan(shift(1.1)) == (GLOBAL, True) and d.loc.guesses[-1] is None
+
+
+def test_a_topic_guess_is_used_in_every_state_and_the_parameter_never():
+    d = MapDriver(lost_after=1)
+    d.tracker.set_guess(shift(7.1), "map", None, "initialpose", now=0.0)
+    assert d.scan(shift(7.0), now=0.5) == (mapping.TRACKING, True)  # RViz's pose: the first scan starts there
+    assert np.allclose(d.loc.guesses[-1], shift(7.1))
+    assert d.scan(shift(20.0), now=1.0) == (LOST, False)
+    d.tracker.set_guess(shift(-3.1), "map", None, "initialpose", now=1.5)  # lost, then a pose from RViz
+    assert d.scan(shift(-3.0), now=2.0) == (mapping.TRACKING, True) and np.allclose(d.loc.guesses[-1], shift(-3.1))
+    d.relocalize()  # forgets the guess too
+    assert d.scan(shift(-3.0), now=2.5) == (GLOBAL, True) and d.loc.guesses[-1] is None
+
+
+def test_map_settings_are_checked():
+    with pytest.raises(ConfigError, match="workers 1"):
+        NodeConfig(map=MapParams(enabled=True), workers=2)
+    with pytest.raises(ConfigError, match="map.lost_after"):
+        MapParams(lost_after=0)
+    with pytest.raises(ValueError, match="lost_after"):
+        Localization(0)
