@@ -846,12 +846,14 @@ def node_cmd(*ros_args: str) -> list[str]:
 
 
 @contextmanager
-def node_process(namespace: str, log_path: Path, params: dict, before=None, ready=True):
-    """register_node in its own process (`python -m genreg_ros.node`) under `namespace` with `params`, and
-    a Harness client of this process. `before(harness)` runs before the node starts; with `ready` the
-    node's first diagnostics are awaited. Yields (harness, process, log path); stops the node with SIGINT
-    and checks it exits cleanly."""
-    args = [a for k, v in params.items() for a in ("-p", f"{k}:={v}")]
+def node_process(namespace: str, log_path: Path, params: dict, before=None, ready=True,
+                 params_file: Path | None = None):
+    """register_node in its own process (`python -m genreg_ros.node`) under `namespace` with `params` (over
+    `params_file`'s, if given), and a Harness client of this process. `before(harness)` runs before the node
+    starts; with `ready` the node's first diagnostics are awaited. Yields (harness, process, log path); stops
+    the node with SIGINT and checks it exits cleanly."""
+    args = ["--params-file", str(params_file)] if params_file is not None else []
+    args += [a for k, v in params.items() for a in ("-p", f"{k}:={v}")]
     ctx = rclpy.Context()
     rclpy.init(context=ctx)
     h = Harness(ctx, namespace, None)

@@ -1,0 +1,161 @@
+"""register_node's map mode in its own process, driven by a client of this test's own: scans of redkitchen
+localised in a map fused from its validation frames, against the ground-truth poses (the map frame is the
+dataset's world frame, so a scan's true pose in the map is `pose(i)`).
+
+The node runs with config/genreg_map.yaml as shipped (plus a short diagnostics period). The map is published
+once on `target_cloud` by a reliable, transient_local publisher before the node exists (a latched map); the
+scans come from a best-effort publisher (SensorDataQoS, as a camera driver's). What is checked: the first scan
+is placed without a guess (`localization: global`), the next ones track, a kidnapped camera is relocalised
+within three scans, an off-map scan (SUN3D) publishes no pose and tracking turns lost, `~/relocalize`
+localises the next scan without a guess, and RViz's `initialpose` is the next scan's guess.
+"""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+import open3d as o3d
+import pytest
+from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
+from sensor_msgs.msg import PointCloud2
+from std_msgs.msg import Header
+from std_srvs.srv import Trigger
+from test_node import diag_values, errors, node_process, stamp, wait_subscribed
+
+from genreg_core.data.rgbd import RGBDSequence
+from genreg_core.geometry import apply_transform
+from genreg_ros.config import CONFIG_DIR
+from genreg_ros.conversions import matrix_to_pose_msg, msg_to_matrix
+from genreg_ros.pointcloud2 import xyz_to_msg
+
+MAP_FRAMES = range(800, 1000, 10)  # redkitchen validation frames fused into the map (every 10th of 800-990)
+STRIDE = 4
+MAP_FRAME_ID, CAMERA = "map", "camera"
+MAX_RE, MAX_TE = 2.0, 0.05  # deg, m
+PARAMS = {"diagnostics.period": 0.2}  # config/genreg_map.yaml otherwise
+
+
+def fused_map(seq: RGBDSequence) -> np.ndarray:
+    """The map frames' points moved by their poses into the world frame, concatenated, voxelised to 2 cm."""
+    world = np.concatenate([apply_transform(seq.pose(i), seq.points(i, stride=STRIDE).astype(np.float64))
+                            for i in MAP_FRAMES])
+    return np.asarray(o3d.geometry.PointCloud(o3d.utility.Vector3dVector(world)).voxel_down_sample(0.02).points)
+
+
+@pytest.fixture(scope="module")
+def mapped(ros_namespace, tmp_path_factory):
+    """The node in map mode, its latched map published before it started, and a best-effort scan publisher."""
+    seq = RGBDSequence.redkitchen()
+    map_msg = xyz_to_msg(stamp(1.0), fused_map(seq))
+    map_msg.header.frame_id = MAP_FRAME_ID
+    latched = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL)
+    held = {}
+
+    def publish_map(h):  # before the node exists: only transient_local durability can deliver it
+        held["pub"] = h.helper.create_publisher(PointCloud2, "target_cloud", latched)
+        held["pub"].publish(map_msg)
+        held["scans"] = h.helper.create_publisher(PointCloud2, "source_cloud", qos_profile_sensor_data)
+
+    log = tmp_path_factory.mktemp("map") / "node.log"
+    with node_process(f"{ros_namespace}/map", log, PARAMS, before=publish_map,
+                      params_file=CONFIG_DIR / "genreg_map.yaml") as (h, _proc, log_path):
+        wait_subscribed(h, held["scans"], held["pub"])
+        h.wait(lambda: any(diag_values(s).get("received.target") == "1" for m in h.diagnostics for s in m.status),
+               15.0, "the latched map received")
+        yield h, seq, held["scans"], log_path
+
+
+class Scans:
+    """Scans sent one at a time (each waits for its registration_status), stamped 100 s, 101 s, ..."""
+
+    def __init__(self, h, pub) -> None:
+        self.h, self.pub, self.t = h, pub, 100.0
+
+    def send(self, points: np.ndarray) -> tuple[dict[str, str], np.ndarray | None]:
+        """(the scan's registration_status values, its published pose T_map_camera or None)."""
+        self.t += 1.0
+        header = stamp(self.t)
+        msg = xyz_to_msg(header, points)
+        msg.header.frame_id = CAMERA
+        self.pub.publish(msg)
+        result = self.h.result_for(header, timeout=60.0)
+        status = {**diag_values(result), "message": result.message}
+        assert status["target_frame"] == MAP_FRAME_ID and status["source_frame"] == CAMERA, status
+        if status["published"] != "true":
+            return status, None
+        key = (header.stamp.sec, header.stamp.nanosec)
+        find = lambda: [m for m in self.h.poses if (m.header.stamp.sec, m.header.stamp.nanosec) == key]
+        self.h.wait(find, 10.0, "the scan's pose")
+        with self.h.lock:
+            return status, msg_to_matrix(find()[-1].pose)
+
+
+def check_pose(T: np.ndarray | None, truth: np.ndarray, what: str, status: dict[str, str]) -> None:
+    assert T is not None, f"{what}: no pose published ({status})"
+    re, te = errors(T, truth)
+    assert re < MAX_RE and te < MAX_TE, f"{what}: RE {re:.2f} deg, TE {100 * te:.1f} cm ({status})"
+
+
+def test_scans_are_localised_tracked_relocalised_and_off_map_scans_publish_nothing(mapped):
+    h, seq, pub, log = mapped
+    scans = Scans(h, pub)
+    t0 = time.monotonic()
+
+    status, T = scans.send(seq.points(805, stride=STRIDE))  # the first scan: no guess
+    assert status["localization"] == "global" and status["initial_guess"] == "none", status
+    assert status["message"].startswith("global: published"), status
+    check_pose(T, seq.pose(805), "first scan", status)
+    for i in (808, 811):  # from the last accepted pose
+        status, T = scans.send(seq.points(i, stride=STRIDE))
+        assert status["localization"] == "tracking" and status["initial_guess"] == "last_result", status
+        check_pose(T, seq.pose(i), f"tracked scan {i}", status)
+
+    # kidnapped: the camera jumps about 1 m and 35 deg (frames from another part of the sequence)
+    assert errors(seq.pose(975), seq.pose(811))[0] > 30.0
+    states = []
+    for n, i in enumerate((975, 977, 979)):
+        status, T = scans.send(seq.points(i, stride=STRIDE))
+        states.append(status["localization"])
+        if T is not None:
+            check_pose(T, seq.pose(i), f"kidnapped scan {i}", status)  # every pose published is right
+            break
+    else:
+        raise AssertionError(f"the kidnapped camera was not relocalised within 3 scans: {states}")
+    assert n == 0 or status["localization"] == "global", states
+
+    # off the map (another building): no pose, tracking lost after map.lost_after (2) misses
+    sun3d = RGBDSequence.sun3d(1).points(940, stride=STRIDE)
+    for expected in ("tracking", "lost"):
+        status, T = scans.send(sun3d)
+        assert T is None and status["published"] == "false", status
+        assert status["localization"] == expected, status
+    assert status["message"].startswith("lost: rejected: confidence"), status
+    diag = diag_values(h.status(after=time.monotonic()))
+    assert diag["localization"] == "lost" and int(diag["tracking_lost"]) >= 1, diag
+
+    status, T = scans.send(seq.points(983, stride=STRIDE))  # back on the map: lost -> global
+    assert status["localization"] == "global" and status["initial_guess"] == "none", status
+    check_pose(T, seq.pose(983), "scan after lost", status)
+    status, T = scans.send(seq.points(985, stride=STRIDE))
+    assert status["localization"] == "tracking", status
+    check_pose(T, seq.pose(985), "tracked scan 985", status)
+
+    response = h.call(Trigger, "relocalize")
+    assert response.success, response.message
+    status, T = scans.send(seq.points(987, stride=STRIDE))
+    assert status["localization"] == "global" and status["initial_guess"] == "none", status
+    check_pose(T, seq.pose(987), "scan after ~/relocalize", status)
+
+    # RViz's 2D Pose Estimate: the next scan's guess (a pose 5 cm and a little rotation off the truth)
+    guess = seq.pose(945).copy()
+    guess[:3, 3] += [0.03, -0.03, 0.03]
+    h.pub_initialpose.publish(matrix_to_pose_msg(guess, Header(stamp=stamp(scans.t).stamp, frame_id=MAP_FRAME_ID),
+                                                 None))
+    time.sleep(0.5)
+    status, T = scans.send(seq.points(945, stride=STRIDE))
+    assert status["localization"] == "tracking" and status["initial_guess"] == "initialpose", status
+    check_pose(T, seq.pose(945), "scan from initialpose", status)
+    assert time.monotonic() - t0 < 60.0
+    text = log.read_text()
+    assert "tracking lost" in text and "relocalize (relocalize service)" in text, text[-3000:]
