@@ -4,9 +4,9 @@ A `Method` maps (source, target) arrays to a `MethodOutput`: the 4x4 target_from
 time (the method's own preprocessing included) and JSON-ready details (GenReg: confidence, fitness, inlier
 ratio and stage timings of `RegistrationResult`). GenReg methods load one checkpoint per dataset kind
 ("object", "scene"): `genreg` (network + PDSAC), `genreg+icp`, `genreg+p2plane` and `genreg+gicp` (the API's
-point-to-point / point-to-plane / GICP refinement with its guard, at the API's default refinement settings:
-the benchmark compares refinements, so it does not take the scene preset's 20 GICP iterations) and `genreg+p2plane+fallback` (plus the opt-in FPFH + RANSAC
-fallback; reported apart from GenReg's own figures); `load_each` skips a checkpoint that does not load, with a
+point-to-point / point-to-plane / GICP refinement with its guard, at the API's default refinement settings,
+except the preset's own refinement: scenes' GICP is the node's, 20 iterations) and `genreg+p2plane+fallback`
+(plus the opt-in FPFH + RANSAC fallback; reported apart from GenReg's own figures); `load_each` skips a checkpoint that does not load, with a
 message. A suite runs its own methods (`datasets.Suite.methods`), `DEFAULT_METHODS` unless it names them.
 `measure_throughput` times the network + PDSAC stage (`Registrar.estimate`) at batch 1 and batched.
 """
@@ -86,19 +86,20 @@ def genreg_method(registrar: Registrar) -> Method:
 
 def load_genreg(checkpoint: str, seed: int, base: RegistrationConfig | None = None) -> dict[str, Registrar]:
     """'genreg' (network + PDSAC), 'genreg+icp', 'genreg+p2plane' and 'genreg+gicp' (the API's point-to-point,
-    point-to-plane or GICP refinement with default refinement settings and guard) on one model, from the
-    settings `base` (default: the API's; scenes: `config.SCENE_REGISTRATION`, of which they keep all but the
-    refinement) with the run's seed."""
+    point-to-plane or GICP refinement with default refinement settings and guard; the refinement of `base`
+    as it is) on one model with its confidence calibration, from the settings `base` (default: the API's;
+    scenes: `config.SCENE_REGISTRATION`) with the run's seed."""
     base = replace(base or RegistrationConfig(), seed=seed)
 
     def config(method: str = "none", fallback: FallbackConfig | None = None) -> RegistrationConfig:
-        return replace(base, refine=RefineConfig(method=method), fallback=fallback or FallbackConfig())
+        refine = base.refine if base.refine.method == method else RefineConfig(method=method)  # the preset's own
+        return replace(base, refine=refine, fallback=fallback or FallbackConfig())
 
     plain = Registrar.from_checkpoint(checkpoint, config())
-    refined = {name: Registrar(plain.model, config(method))
+    refined = {name: Registrar(plain.model, config(method), plain.calibration)
                for name, method in (("genreg+icp", "point_to_point"), ("genreg+p2plane", "point_to_plane"),
                                      ("genreg+gicp", "gicp"))}
-    rescued = Registrar(plain.model, config("point_to_plane", FallbackConfig(method="fpfh_ransac")))
+    rescued = Registrar(plain.model, config("point_to_plane", FallbackConfig(method="fpfh_ransac")), plain.calibration)
     return {"genreg": plain, **refined, "genreg+p2plane+fallback": rescued}
 
 

@@ -415,3 +415,12 @@ def test_pairs_flag_sets_every_dataset_count_and_keeps_the_suite_name():
     assert name == "partial" and resolved.methods == SUITES["partial"].methods
     assert set(resolved.counts.values()) == {48} and set(resolved.counts) == set(SUITES["partial"].counts)
     assert SUITES["partial"].counts["sun3d-kidnap-gap5"] == 5  # the suite itself is untouched
+
+
+def test_every_genreg_method_carries_the_models_calibration_and_scenes_refine_as_the_node():
+    from genreg_bench.methods import load_genreg
+    from genreg_core.config import SCENE_REGISTRATION
+
+    methods = load_genreg("7scenes", 0, SCENE_REGISTRATION)
+    assert all(reg.calibrated for reg in methods.values())  # each one's confidence is a calibrated probability
+    assert methods["genreg+gicp"].config.refine == SCENE_REGISTRATION.refine  # GICP, 20 iterations
