@@ -42,6 +42,7 @@ from genreg_core.registration import Registrar, RegistrationResult
 SPACING_SAMPLES = 20_000  # the map's resolution is the median nearest-neighbour spacing of this many points
 RADIUS_QUANTILE = 0.9  # a scan's radius: this quantile of its points' distances from their centroid
 SCREEN_POINTS = 1000  # candidate places are scored on this many points (the verification on the profile's)
+PLACE_CHUNK = 256  # place centres searched at once
 RADIUS_STEP = 1.25  # scan radii are rounded up to powers of this, so nearby radii share one place grid
 
 
@@ -115,23 +116,28 @@ class MapLocalizer:
         self.place_radius = place_radius
         self.crop_radius = crop_radius
         self.batch_size = batch_size
-        self._places: dict[float, list[np.ndarray]] = {}  # scan radius -> place point sets
+        self._places: dict[float, list[np.ndarray]] = {}  # scan radius -> the places' map rows
         # candidates are screened without refinement (ranking only), then verified with the full profile
         cfg = self.registrar.config
         self._screen_config = replace(cfg, refine=replace(cfg.refine, method="none", num_points=SCREEN_POINTS),
                                       pdsac=replace(cfg.pdsac, modes=1))
 
     def places(self, radius: float) -> list[np.ndarray]:
-        """The candidate places for scans of this radius: map points within `place_radius` x `radius` of
-        each centre of an occupied grid cell (grid spacing `place_spacing` x `radius`), places with fewer
-        points than registration needs dropped. Built on first use, cached by radius."""
+        """The candidate places for scans of this radius, as map row indices: the map points within
+        `place_radius` x `radius` of each centre of an occupied grid cell (grid spacing `place_spacing` x
+        `radius`) as int32 rows (places overlap: about 60 per map point at the default spacing and radius;
+        a random subset per place placed fewer redkitchen training scans); places with fewer points than
+        registration needs are dropped. Built on first use, cached by radius."""
         if radius not in self._places:
             spacing = self.place_spacing * radius
             cells = np.unique(np.floor(self.map / spacing).astype(np.int64), axis=0)
             centres = (cells + 0.5) * spacing
-            members = self.tree.query_ball_point(centres, self.place_radius * radius, workers=1)
-            minimum = self.registrar.config.min_points
-            self._places[radius] = [self.map[np.asarray(rows)] for rows in members if len(rows) >= minimum]
+            minimum, kept = self.registrar.config.min_points, []
+            for start in range(0, len(centres), PLACE_CHUNK):  # a chunk at a time: large maps, few lists alive
+                for rows in self.tree.query_ball_point(centres[start: start + PLACE_CHUNK], self.place_radius * radius):
+                    if len(rows) >= minimum:
+                        kept.append(np.asarray(rows, dtype=np.int32))
+            self._places[radius] = kept
         return self._places[radius]
 
     def crop(self, centre: np.ndarray, radius: float) -> np.ndarray:
@@ -163,14 +169,14 @@ class MapLocalizer:
         places = self.places(radius)
         if self.extent < self.whole_map_ratio * extent or whole.confidence >= self.accept_whole or not places:
             return whole
-        screened = self.screen(scan, places)
+        screened = self.screen(scan, [self.map[rows] for rows in places])
         best = sorted(range(len(screened)), key=lambda k: -screened[k].confidence)[: self.candidates]
         verified = [self.refined(scan, screened[k].transformation,
                                  apply_transform(screened[k].transformation, centroid[None])[0], radius) for k in best]
         return max([whole, *verified], key=lambda r: r.confidence)
 
     def screen(self, scan: np.ndarray, places: Sequence[np.ndarray]) -> list[RegistrationResult]:
-        """The scan registered against every place, unrefined, in batches of `batch_size`."""
+        """The scan registered against every place (point sets), unrefined, in batches of `batch_size`."""
         screener = Registrar(self.registrar.model, self._screen_config, self.registrar.calibration)
         results: list[RegistrationResult] = []
         for start in range(0, len(places), self.batch_size):

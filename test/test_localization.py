@@ -6,6 +6,7 @@ from __future__ import annotations
 import numpy as np
 import open3d as o3d
 import pytest
+from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
 from genreg_core.data.rgbd import RGBDSequence
@@ -80,11 +81,12 @@ def test_bad_input_raises_the_registrars_named_errors(kitchen):
 
 def test_places_cover_the_map_and_voxelize_keeps_one_centroid_per_voxel(kitchen):
     _, loc = kitchen
-    places = loc.places(0.8)
-    assert places is loc.places(0.8)  # cached by radius
-    covered = np.unique(np.concatenate([loc.tree.query(p, k=1)[1] for p in places]))
-    assert len(covered) == len(loc.map)  # every map point lies in some place
-    assert max(len(p) for p in places) < len(loc.map)
+    radius = 0.8
+    places = loc.places(radius)
+    assert places is loc.places(radius)  # cached by radius
+    assert all(loc.registrar.config.min_points <= len(rows) < len(loc.map) for rows in places)
+    covered = cKDTree(loc.map[np.unique(np.concatenate(places))])
+    assert covered.query(loc.map, k=1)[0].max() < loc.place_spacing * radius  # no part of the map left out
     points = np.array([[0.01, 0.01, 0.01], [0.03, 0.03, 0.03], [0.11, 0.0, 0.0]])
     assert np.allclose(voxelize(points, 0.1), [[0.02, 0.02, 0.02], [0.11, 0.0, 0.0]])
 
