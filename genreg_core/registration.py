@@ -303,8 +303,11 @@ class Registrar:
         T = refine(p.dense_src, target, winner, cfg.refine) if refining else winner
         choice = Choice(T, "genreg", float(est.inliers[k].float().mean()))
         if check.calibration is not None and p.init is None:
-            mode = verified_mode(check, target, T, winner, lambda: est.modes(k, p.a, p.b, cfg.pdsac), cfg.refine,
-                                 cfg.pdsac.modes_below)
+            def modes() -> np.ndarray:
+                with torch_threads(cfg.estimate_threads):
+                    return est.modes(k, p.a, p.b, cfg.pdsac)
+
+            mode = verified_mode(check, target, T, winner, modes, cfg.refine, cfg.pdsac.modes_below)
             if mode is not T:
                 choice = Choice(mode, "genreg", check.agreement(mode))
         if p.init is not None:  # the initial guess: identity in the guess-moved frame

@@ -10,12 +10,12 @@ modes. Frames and units: `genreg_core.geometry`.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import cached_property
 
 import numpy as np
 import torch
 
 from genreg_core.confidence import SPACINGS, ConfidenceModel, features
-from genreg_core.pdsac import union_inlier_share
 from genreg_core.prepare import PreparedPair
 from genreg_core.score import TIGHT_SPACINGS, fitness_distance, overlap_fitness, overlap_shares
 
@@ -58,12 +58,21 @@ class Verifier:
         p = self.pair
         return overlap_shares(p.dense_src, p.target_index, T, np.multiply(SPACINGS, p.target_index.spacing))
 
-    def agreement(self, T: np.ndarray) -> float:
-        """The inlier ratio of the generated correspondences (both directions) under T."""
+    @cached_property
+    def correspondences(self) -> tuple[np.ndarray, np.ndarray]:
+        """The union of the generated correspondences, {A_i -> A_g,i} and {B_g,i -> B_i}, as float64 arrays
+        (source side, target side) (`pdsac.union_correspondences`)."""
         p = self.pair
-        T_k = torch.from_numpy(T)[None].to(self.source_generated.dtype)
-        return float(union_inlier_share(T_k, torch.from_numpy(p.a)[None], self.source_generated[None],
-                                        torch.from_numpy(p.b)[None], self.target_generated[None], self.tau)[0])
+        src = np.concatenate([p.a, self.target_generated.double().cpu().numpy()])
+        dst = np.concatenate([self.source_generated.double().cpu().numpy(), p.b])
+        return src.astype(np.float64), dst
+
+    def agreement(self, T: np.ndarray) -> float:
+        """The inlier ratio of the generated correspondences (both directions) under T (`pdsac.union_inlier_share`,
+        in numpy: no torch thread pool for 1,024 rows)."""
+        src, dst = self.correspondences
+        residual = np.linalg.norm(src @ T[:3, :3].T + T[:3, 3] - dst, axis=1)
+        return float(np.mean(residual < self.tau))
 
     def probability(self, T: np.ndarray, inlier_ratio: float | None = None, constraint: float = 1.0) -> float:
         """The calibrated probability that T is right (a calibration is needed), from its shares, the
