@@ -149,11 +149,13 @@ COARSE_ITERATIONS = 10  # ... with this many ICP iterations
 @dataclass
 class Choice:
     """Where a pair's candidates settled (stage 8): the pose (normalised frame, b ~ T a), what it grew from
-    ("genreg", "initial_guess" or "fallback") and the inlier ratio of the generated correspondences under it."""
+    ("genreg", "initial_guess" or "fallback"), the inlier ratio of the generated correspondences under it, and
+    its rival: two distinct poses cannot both be right, so P(this one) <= 1 - P(the rival)."""
 
     transform: np.ndarray
     start: str
     inlier_ratio: float
+    rival: float = 0.0  # the probability that another, distinct pose is right (the best other mode's)
 
 
 def icp_target(p: PreparedPair, method: str) -> object:
@@ -167,15 +169,18 @@ def overlap_score(check: Verifier, choice: Choice) -> float:
 
 
 def verified_mode(check: Verifier, target: object, T_best: np.ndarray, start: np.ndarray,
-                  find_modes: Callable[[], np.ndarray], refine_cfg: RefineConfig, below: float = 1.0) -> np.ndarray:
+                  find_modes: Callable[[], np.ndarray], refine_cfg: RefineConfig, below: float = 1.0
+                  ) -> tuple[np.ndarray, float]:
     """GenReg's refined estimate `T_best` or another PDSAC mode (`find_modes()`: `Estimate.modes`, (K, 4, 4)),
     whichever is more probably right (`Verifier.probability`). Only when `T_best` scores below `below`: a
     confident estimate costs nothing more, not even the search for the modes. Each mode other than `T_best`'s `start` is refined coarsely
     (`COARSE_POINTS` source points, `COARSE_ITERATIONS` iterations), the best of them fully; it replaces
-    `T_best` only if it then verifies better. Without refinement the modes are compared as they are."""
+    `T_best` only if it then verifies better. Without refinement the modes are compared as they are.
+    Returns the pose and its rival's probability: the best of the other distinct poses verified (0 when
+    none was searched)."""
     best_score = check.probability(T_best)
     if best_score >= below:
-        return T_best
+        return T_best, 0.0
     modes = find_modes()
     refining = refine_cfg.method != "none"
     dense_src = check.pair.dense_src
@@ -185,10 +190,12 @@ def verified_mode(check: Verifier, target: object, T_best: np.ndarray, start: np
     coarse = [refine(coarse_src, target, M, coarse_cfg) if refining else M for M in distinct]
     scores = [check.probability(T) for T in coarse]
     if not scores or max(scores) <= best_score:
-        return T_best
-    rival = coarse[int(np.argmax(scores))]
-    rival = refine(dense_src, target, rival, refine_cfg) if refining else rival
-    return rival if check.probability(rival) > best_score else T_best
+        return T_best, max(scores, default=0.0)
+    best = int(np.argmax(scores))
+    rival = refine(dense_src, target, coarse[best], refine_cfg) if refining else coarse[best]
+    rival_score = check.probability(rival)
+    others = max([best_score, *scores[:best], *scores[best + 1:]])
+    return (rival, others) if rival_score > best_score else (T_best, max(scores))
 
 
 class Registrar:
@@ -307,9 +314,8 @@ class Registrar:
                 with torch_threads(cfg.estimate_threads):
                     return est.modes(k, p.a, p.b, cfg.pdsac)
 
-            mode = verified_mode(check, target, T, winner, modes, cfg.refine, cfg.pdsac.modes_below)
-            if mode is not T:
-                choice = Choice(mode, "genreg", check.agreement(mode))
+            mode, rival = verified_mode(check, target, T, winner, modes, cfg.refine, cfg.pdsac.modes_below)
+            choice = Choice(mode, "genreg", choice.inlier_ratio if mode is T else check.agreement(mode), rival)
         if p.init is not None:  # the initial guess: identity in the guess-moved frame
             kept = np.eye(4)
             if refining:  # refinement must earn its move away from the user's guess, at one spacing
@@ -344,8 +350,8 @@ class Registrar:
                                      scale=p.scale)  # in the normalised frame (the fitness' index), metric
         unconstrained, constrained = unconstrained_directions(moved, p.target_index, check.distance)
         verification = features(check.shares(T_n), inlier_ratio, constrained)
-        probability = constrained * (check.calibration.probability(verification, check.refine_method)
-                                     if check.calibration is not None
+        probability = constrained * (min(check.calibration.probability(verification, check.refine_method),
+                                         1.0 - choice.rival) if check.calibration is not None
                                      else confidence(fitness, tight_fitness, inlier_ratio))
         a_gen = p.points_to_input_units(est.source_generated[k].double().cpu().numpy())
         b_gen = p.points_to_input_units(est.target_generated[k].double().cpu().numpy())
