@@ -38,6 +38,7 @@ from genreg_core.config import OBJECT_MODEL, PDSACConfig, RefineConfig, Registra
 from genreg_core.fallback import fallback
 from genreg_core.geometry import apply_transform
 from genreg_core.pdsac import (
+    MODE_TRANSLATION,
     both_directions,
     distinct_modes,
     pdsac_bidirectional,
@@ -168,6 +169,13 @@ def overlap_score(check: Verifier, choice: Choice) -> float:
     return confidence(check.fitness(choice.transform)[0], check.tight(choice.transform), choice.inlier_ratio)
 
 
+def distinct_poses(T_a: np.ndarray, T_b: np.ndarray, separation_rad: float) -> bool:
+    """Whether two poses (normalised frame) are distinct modes: rotations more than `separation_rad` apart,
+    or translations more than `pdsac.MODE_TRANSLATION`."""
+    cos = (np.trace(T_a[:3, :3].T @ T_b[:3, :3]) - 1.0) / 2.0
+    return bool(cos < np.cos(separation_rad) or np.linalg.norm(T_a[:3, 3] - T_b[:3, 3]) > MODE_TRANSLATION)
+
+
 def verified_mode(check: Verifier, target: object, T_best: np.ndarray, start: np.ndarray,
                   find_modes: Callable[[], np.ndarray], refine_cfg: RefineConfig, below: float = 1.0
                   ) -> tuple[np.ndarray, float]:
@@ -189,13 +197,16 @@ def verified_mode(check: Verifier, target: object, T_best: np.ndarray, start: np
     distinct = [M for k, M in enumerate(modes) if not any(np.array_equal(M, m) for m in [start, *modes[:k]])]
     coarse = [refine(coarse_src, target, M, coarse_cfg) if refining else M for M in distinct]
     scores = [check.probability(T) for T in coarse]
-    if not scores or max(scores) <= best_score:
-        return T_best, max(scores, default=0.0)
-    best = int(np.argmax(scores))
-    rival = refine(dense_src, target, coarse[best], refine_cfg) if refining else coarse[best]
-    rival_score = check.probability(rival)
-    others = max([best_score, *scores[:best], *scores[best + 1:]])
-    return (rival, others) if rival_score > best_score else (T_best, max(scores))
+    chosen = T_best
+    if scores and max(scores) > best_score:
+        best = int(np.argmax(scores))
+        rival = refine(dense_src, target, coarse[best], refine_cfg) if refining else coarse[best]
+        chosen = rival if check.probability(rival) > best_score else T_best
+    separation = np.radians(check.separation)
+    # the rival: the most probable candidate that stayed a distinct pose (modes often refine to one answer)
+    others = [score for T, score in zip([T_best, *coarse], [best_score, *scores], strict=True)
+              if distinct_poses(T, chosen, separation)]
+    return chosen, max(others, default=0.0)
 
 
 class Registrar:
@@ -292,7 +303,7 @@ class Registrar:
         cfg = model_frame_config(self.config, p.scale)  # distances in this pair's normalised frame
         t0 = time.perf_counter()
         check = Verifier(p, est.source_generated[k], est.target_generated[k], cfg.pdsac.tau,  # 7. verify
-                         self.calibration if self.calibrated else None, cfg.refine.method)
+                         self.calibration if self.calibrated else None, cfg.refine.method, cfg.pdsac.mode_separation)
         choice = self.choose(p, est, k, check, cfg)  # 6.-8. candidates, refine, verify, choose
         return self.result(p, est, k, check, choice, shared, t0)  # 9. result
 

@@ -32,6 +32,7 @@ class Verifier:
     tau: float
     calibration: ConfidenceModel | None = None
     refine_method: str = "none"
+    separation: float = 15.0  # deg: two poses this far apart in rotation are distinct (`pdsac.mode_separation`)
 
     @property
     def distance(self) -> float:
