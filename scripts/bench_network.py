@@ -185,8 +185,9 @@ def float64_acos_for_onnx() -> Iterator[None]:
 
 
 def ort_inference(path: str | os.PathLike, threads: int) -> Any:
-    """An onnxruntime CPU InferenceSession with `threads` intra-op threads (sequential, no spinning: as
-    OMP_WAIT_POLICY=PASSIVE for torch on a shared machine)."""
+    """An onnxruntime CPU InferenceSession with `threads` intra-op threads (sequential). onnxruntime's idle
+    intra-op threads spin by default, unlike torch under OMP_WAIT_POLICY=PASSIVE: on a shared machine compare
+    the runners at one thread."""
     import onnxruntime as ort
 
     options = ort.SessionOptions()
@@ -194,7 +195,6 @@ def ort_inference(path: str | os.PathLike, threads: int) -> Any:
     options.inter_op_num_threads = 1
     options.execution_mode = ort.ExecutionMode.ORT_SEQUENTIAL
     options.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
-    options.add_session_config_entry("session.intra_op.allow_spinning", "0")
     return ort.InferenceSession(str(path), options, providers=["CPUExecutionProvider"])
 
 
