@@ -37,6 +37,7 @@ from genreg_core.config import SCENE_MODEL, SCENE_REGISTRATION, RegistrationConf
 from genreg_core.errors import ConfigError, TooFewPointsError
 from genreg_core.geometry import apply_transform
 from genreg_core.prepare import check_transform, robust_extent, validate_cloud
+from genreg_core.preprocess import voxel_downsample
 from genreg_core.registration import Registrar, RegistrationResult
 
 SPACING_SAMPLES = 20_000  # the map's resolution is the median nearest-neighbour spacing of this many points
@@ -44,19 +45,6 @@ RADIUS_QUANTILE = 0.9  # a scan's radius: this quantile of its points' distances
 SCREEN_POINTS = 1000  # candidate places are scored on this many points (the verification on the profile's)
 PLACE_CHUNK = 256  # place centres searched at once
 RADIUS_STEP = 1.25  # scan radii are rounded up to powers of this, so nearby radii share one place grid
-
-
-def voxelize(points: np.ndarray, voxel_size: float) -> np.ndarray:
-    """(K, 3) float64 centroids of the points in each occupied cubic voxel of edge `voxel_size` (0: as given)."""
-    points = np.asarray(points, dtype=np.float64)
-    if voxel_size <= 0:
-        return points
-    keys = np.floor((points - points.min(axis=0)) / voxel_size).astype(np.int64)
-    _, inverse, counts = np.unique(keys, axis=0, return_inverse=True, return_counts=True)
-    inverse = inverse.reshape(-1)
-    sums = np.zeros((len(counts), 3))
-    np.add.at(sums, inverse, points)
-    return sums / counts[:, None]
 
 
 def median_spacing(points: np.ndarray, samples: int = SPACING_SAMPLES, seed: int = 0) -> float:
@@ -158,7 +146,7 @@ class MapLocalizer:
         reg = self.registrar
         finite, _ = validate_cloud(scan_xyz, "source", reg.config.min_points)
         guess = None if initial_guess is None else check_transform(initial_guess)
-        scan = voxelize(finite, self.voxel_size)
+        scan = voxel_downsample(np.asarray(finite, dtype=np.float64), self.voxel_size)
         if len(scan) < reg.config.min_points:
             raise TooFewPointsError(f"source has {len(scan)} points after voxelising to the map's "
                                     f"{self.voxel_size:.3g}; registration needs at least {reg.config.min_points}")
@@ -191,4 +179,4 @@ class MapLocalizer:
         return self.registrar.register(scan, target, guess)
 
 
-__all__ = ["MapLocalizer", "median_spacing", "voxelize"]
+__all__ = ["MapLocalizer", "median_spacing"]

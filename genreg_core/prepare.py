@@ -163,8 +163,8 @@ def distinct_subsample(points: np.ndarray, n: int, rng: np.random.Generator, ord
         return distinct_points(points)
     rows = subsample(points, n, rng, ordered)
     if len(points) < n:  # every row once plus repeats: repeats of distinct points are as `subsample`
-        return rows if not repeated_rows(points.astype(np.float64)).any() else \
-            subsample(distinct_points(points), n, rng, ordered)
+        distinct = distinct_points(points)
+        return rows if len(distinct) == len(points) else subsample(distinct, n, rng, ordered)
     repeated = repeated_rows(rows)
     for _ in range(rounds):
         if not repeated.any():
@@ -310,9 +310,9 @@ def prepare_pair(
         raise InvalidPointCloudError(f"source extent overflows float64 ({scale}): coordinates too large")
 
     def normalized(points: np.ndarray) -> np.ndarray:
-        with np.errstate(over="ignore", invalid="ignore"):
+        with np.errstate(over="ignore"):  # finite input: an overflow is inf, never NaN
             moved = ((points - offset) / scale).astype(np.float32)
-            reach = float(np.abs(moved).max()) if np.isfinite(moved.sum(dtype=np.float64)) else np.inf
+        reach = float(np.abs(moved).max())
         if reach > MAX_REACH:
             raise InvalidPointCloudError(f"a cloud reaches {reach:.3g} source extents (of {scale:.3g}) from the source, "
                                          f"more than {MAX_REACH:.0e}: are both clouds in the same units?")

@@ -50,8 +50,9 @@ from tqdm import tqdm
 from genreg_bench.baselines import BaselineParams, fpfh_ransac_icp
 from genreg_core.data.rgbd import RGBDSequence
 from genreg_core.geometry import apply_transform, make_transform
-from genreg_core.localization import MapLocalizer, voxelize
+from genreg_core.localization import MapLocalizer
 from genreg_core.metrics import transform_errors
+from genreg_core.preprocess import voxel_downsample
 
 GATE = 0.5  # confidence gate of "accepted"
 FIT_DISTANCE = 0.05  # the baseline's fitness distance, m
@@ -142,7 +143,7 @@ def baseline_method(case: MapCase) -> Method:
 
     def run(scan: np.ndarray) -> tuple[np.ndarray, float]:
         T, _ = fpfh_ransac_icp(scan, case.map_xyz, params)
-        moved = apply_transform(T, voxelize(scan, ARGS.voxel if ARGS else 0.02))
+        moved = apply_transform(T, voxel_downsample(scan, ARGS.voxel if ARGS else 0.02))
         return T, float(np.mean(tree.query(moved, k=1, distance_upper_bound=FIT_DISTANCE)[0] < FIT_DISTANCE))
     return run
 

@@ -12,8 +12,9 @@ from scipy.spatial.transform import Rotation
 from genreg_core.data.rgbd import RGBDSequence
 from genreg_core.errors import InvalidPointCloudError, NonFinitePointsError, TooFewPointsError
 from genreg_core.geometry import apply_transform, make_transform
-from genreg_core.localization import MapLocalizer, voxelize
+from genreg_core.localization import MapLocalizer
 from genreg_core.metrics import transform_errors
+from genreg_core.preprocess import voxel_downsample
 
 MAP_FRAMES = range(800, 1000, 10)  # redkitchen validation frames fused into the map
 SCANS = (805, 855, 925)  # scans between map frames
@@ -88,7 +89,7 @@ def test_places_cover_the_map_and_voxelize_keeps_one_centroid_per_voxel(kitchen)
     covered = cKDTree(loc.map[np.unique(np.concatenate(places))])
     assert covered.query(loc.map, k=1)[0].max() < loc.place_spacing * radius  # no part of the map left out
     points = np.array([[0.01, 0.01, 0.01], [0.03, 0.03, 0.03], [0.11, 0.0, 0.0]])
-    assert np.allclose(voxelize(points, 0.1), [[0.02, 0.02, 0.02], [0.11, 0.0, 0.0]])
+    assert np.allclose(voxel_downsample(points, 0.1), [[0.02, 0.02, 0.02], [0.11, 0.0, 0.0]])
 
 
 def test_candidate_places_find_the_pose_when_the_whole_map_is_not_trusted(kitchen):
@@ -96,7 +97,7 @@ def test_candidate_places_find_the_pose_when_the_whole_map_is_not_trusted(kitche
     seq, loc = kitchen
     scan = seq.points(925, stride=STRIDE)
     places = MapLocalizer(loc.map, registrar=loc.registrar, voxel_size=loc.voxel_size, accept_whole=1.0)
-    assert places.extent >= places.whole_map_ratio * places.scan_geometry(voxelize(scan, loc.voxel_size))[2]
+    assert places.extent >= places.whole_map_ratio * places.scan_geometry(voxel_downsample(scan, loc.voxel_size))[2]
     result = places.localize(scan)
     re, te = transform_errors(result.transformation, seq.pose(925))
     assert re < 2.0 and te < 0.05 and result.confidence >= 0.5, (re, te, result.confidence)
