@@ -449,7 +449,7 @@ class RegisterNode(LifecycleNode):
     # ----------------------------------------------------------------- start-up
     def _load_registrars(self, c: NodeConfig) -> list[Any]:
         """One registrar per worker: the core's Registrar in this process (workers 1), else a worker process
-        each (started side by side). If loading fails, on_configure closes the processes started."""
+        each (started side by side, after this process has compiled the kernels). If loading fails, on_configure closes the processes started."""
         from genreg_core import kernels
         from genreg_core.registration import Registrar
 
@@ -457,9 +457,11 @@ class RegisterNode(LifecycleNode):
         self._registrars = [RemoteRegistrar(c.model.checkpoint, c.registration_config(), num_points,
                                             f"genreg_worker_{k}") for k in range(c.workers)] if c.workers > 1 else []
         try:
+            # The compiled kernels first (decoding uses them), not at the first pair; the workers started after
+            # load them from numba's cache instead of compiling them three times at once (a fresh install: ~50 s).
+            kernels.compile_all()
             for r in self._registrars:
                 r.start()
-            kernels.compile_all()  # the compiled kernels now (decoding uses them), not at the first pair
             for r in self._registrars:
                 r.wait_ready()
             return self._registrars or [Registrar.from_checkpoint(c.model.checkpoint, config=c.registration_config(),
