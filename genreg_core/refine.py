@@ -77,6 +77,31 @@ def icp(
     return np.asarray(result.transformation).copy()
 
 
+class GICPTarget:
+    """A target cloud prepared once for small_gicp's GICP (its k-d tree and point covariances), to align
+    many sources against (a map)."""
+
+    def __init__(self, points: np.ndarray, *, tree: small_gicp.KdTree | None = None, neighbours: int = 10,
+                 threads: int = 1) -> None:
+        """`tree`: a small_gicp k-d tree of exactly these rows (`TargetIndex.tree`) instead of building one."""
+        self.cloud = small_gicp.PointCloud(np.ascontiguousarray(points, dtype=np.float64))
+        self.tree = tree or small_gicp.KdTree(self.cloud, num_threads=threads)
+        self.neighbours = neighbours
+        small_gicp.estimate_covariances(self.cloud, self.tree, num_neighbors=neighbours, num_threads=threads)
+
+    def align(self, source: np.ndarray, init: np.ndarray | None = None, *, max_distance: float, max_iterations: int,
+              threads: int = 1) -> np.ndarray:
+        """GICP of `source` (covariances from as many neighbours as the target's) from `init`: the 4x4
+        target_from_source."""
+        cloud = small_gicp.PointCloud(np.ascontiguousarray(source, dtype=np.float64))
+        tree = small_gicp.KdTree(cloud, num_threads=threads)
+        small_gicp.estimate_covariances(cloud, tree, num_neighbors=self.neighbours, num_threads=threads)
+        result = small_gicp.align(self.cloud, cloud, self.tree, np.eye(4) if init is None else np.asarray(init, float),
+                                  registration_type="GICP", max_correspondence_distance=max_distance,
+                                  num_threads=threads, max_iterations=max_iterations)
+        return np.asarray(result.T_target_source).copy()
+
+
 def gicp(source: np.ndarray, target: np.ndarray, init: np.ndarray | None = None, *, max_distance: float,
          max_iterations: int, voxel_size: float = 0.0, threads: int = 1, neighbours: int = 10,
          target_tree: small_gicp.KdTree | None = None) -> np.ndarray:
@@ -89,16 +114,9 @@ def gicp(source: np.ndarray, target: np.ndarray, init: np.ndarray | None = None,
         result = small_gicp.align(target, source, init, registration_type="GICP", downsampling_resolution=voxel_size,
                                   max_correspondence_distance=max_distance, num_threads=threads,
                                   max_iterations=max_iterations)
-    else:
-        clouds = [small_gicp.PointCloud(np.ascontiguousarray(c, dtype=np.float64)) for c in (target, source)]
-        trees = [target_tree or small_gicp.KdTree(clouds[0], num_threads=threads),
-                 small_gicp.KdTree(clouds[1], num_threads=threads)]
-        for c, tree in zip(clouds, trees, strict=True):
-            small_gicp.estimate_covariances(c, tree, num_neighbors=neighbours, num_threads=threads)
-        result = small_gicp.align(clouds[0], clouds[1], trees[0], init, registration_type="GICP",
-                                  max_correspondence_distance=max_distance, num_threads=threads,
-                                  max_iterations=max_iterations)
-    return np.asarray(result.T_target_source).copy()
+        return np.asarray(result.T_target_source).copy()
+    return GICPTarget(target, tree=target_tree, neighbours=neighbours, threads=threads).align(
+        source, init, max_distance=max_distance, max_iterations=max_iterations, threads=threads)
 
 
 def refine(src: np.ndarray, tgt: np.ndarray | o3d.geometry.PointCloud, T_init: np.ndarray, cfg: RefineConfig

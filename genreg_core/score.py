@@ -48,11 +48,12 @@ class TargetIndex:
     neighbours, as Open3D's KNN normals). Queries run on `threads` threads (default: OMP_NUM_THREADS,
     else 1)."""
 
-    def __init__(self, points: np.ndarray, threads: int | None = None) -> None:
+    def __init__(self, points: np.ndarray, threads: int | None = None, spacing: float | None = None) -> None:
+        """`spacing`: the point spacing when known (a voxelised map's), else measured on first use."""
         self.points = np.ascontiguousarray(points, dtype=np.float64)
         self.threads = threads or int(os.environ.get("OMP_NUM_THREADS") or 1)
         self.tree = small_gicp.KdTree(self.points, num_threads=1)
-        self._spacing: float | None = None
+        self._spacing: float | None = spacing
         self._normals = np.zeros_like(self.points)
         self._has_normal = np.zeros(len(self.points), dtype=bool)
         self._queries: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []  # the last few `nearest` calls

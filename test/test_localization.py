@@ -6,6 +6,7 @@ from __future__ import annotations
 import numpy as np
 import open3d as o3d
 import pytest
+import small_gicp
 from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
@@ -63,6 +64,48 @@ def test_a_guess_10_deg_and_20_cm_off_is_corrected(kitchen):
     re, te = transform_errors(result.transformation, truth)
     assert re < 2.0 and te < 0.05, (re, te, result.confidence)
     assert result.confidence >= 0.5
+
+
+def test_tracking_from_nearby_guesses_is_gicp_on_the_map_with_a_calibrated_confidence(kitchen):
+    """Guesses a few cm and degrees off (a robot between scans) take the tracking path (no network pass:
+    no inlier ratio) and land on the truth; a guess 1 m and 45 deg off is never a confident wrong pose."""
+    seq, loc = kitchen
+    rng = np.random.default_rng(5)
+    assert loc.tracking_calibrated
+    for i in SCANS:
+        truth = seq.pose(i)
+        near = make_transform(Rotation.from_rotvec(np.radians(3.0) * Rotation.random(random_state=i).as_rotvec()
+                                                   / np.pi).as_matrix(), rng.normal(0.0, 0.04, 3)) @ truth
+        result = loc.localize(seq.points(i, stride=STRIDE), initial_guess=near)
+        re, te = transform_errors(result.transformation, truth)
+        assert re < 2.0 and te < 0.05 and result.confidence >= 0.5, (i, re, te, result.confidence)
+        assert np.isnan(result.inlier_ratio) and result.start == "initial_guess"
+        far = make_transform(Rotation.from_rotvec(np.radians(45.0) * np.array([0.0, 0.6, 0.8])).as_matrix(),
+                             [1.0, 0.0, 0.0]) @ truth
+        result = loc.localize(seq.points(i, stride=STRIDE), initial_guess=far)
+        re, te = transform_errors(result.transformation, truth)
+        assert (re < 2.0 and te < 0.05) or result.confidence < 0.5, (i, re, te, result.confidence)
+
+
+def test_gicp_on_a_prepared_target_equals_small_gicps_own_alignment(kitchen):
+    """Tracking's fast path (`refine.GICPTarget`: the map's covariances and tree built once) against
+    small_gicp's align of the arrays (its own trees and covariances) from the same guess."""
+    seq, loc = kitchen
+    scan = voxel_downsample(seq.points(855, stride=STRIDE).astype(np.float64), loc.voxel_size)
+    guess = make_transform(Rotation.from_rotvec([0.0, 0.05, 0.02]).as_matrix(), [0.05, -0.03, 0.02]) @ seq.pose(855)
+    fast = loc.gicp.align(scan, guess, max_distance=0.2, max_iterations=30)
+    assert loc.gicp.neighbours == 10  # small_gicp's own for arrays; its 1e-5 m voxels keep every point
+    reference = small_gicp.align(loc.map, scan, guess, registration_type="GICP", downsampling_resolution=1e-5,
+                                 max_correspondence_distance=0.2, max_iterations=30).T_target_source
+    assert np.abs(fast - reference).max() < 1e-4  # 0.1 mm: its voxels reorder the points, the sums round apart
+    assert all(e < t for e, t in zip(transform_errors(fast, seq.pose(855)), (2.0, 0.05), strict=True))
+
+
+def test_a_fused_sequence_map_is_open3ds_fusion_of_the_posed_frames(kitchen):
+    seq, loc = kitchen  # loc.map: this file's Open3D fusion
+    mine = seq.fused(MAP_FRAMES, stride=STRIDE, voxel_size=0.02)
+    assert abs(len(mine) - len(loc.map)) < 0.05 * len(loc.map)
+    assert np.median(cKDTree(loc.map).query(mine)[0]) < 0.01 and cKDTree(mine).query(loc.map)[0].max() < 0.04
 
 
 def test_bad_input_raises_the_registrars_named_errors(kitchen):

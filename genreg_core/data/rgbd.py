@@ -30,6 +30,7 @@ from genreg_core.geometry import (
     random_transform,
     unit_box_normalization,
 )
+from genreg_core.preprocess import voxel_downsample
 
 DEPTH_SCALE = 1000.0  # depth PNG units per metre (millimetres)
 INVALID_DEPTH = (0, 65535)
@@ -213,6 +214,13 @@ class RGBDSequence:
     def pose(self, index: int) -> np.ndarray:
         """4x4 T_world_camera of frame `index` (metres)."""
         return read_pose(self._path(index, "pose.txt"))
+
+    def fused(self, frames: Iterable[int], stride: int = 1, voxel_size: float = 0.02) -> np.ndarray:
+        """A map: the frames' points moved by their poses into the world frame, concatenated and voxelised
+        (`preprocess.voxel_downsample`), (M, 3) float64 metres."""
+        world = np.concatenate([apply_transform(self.pose(i), self.points(i, stride=stride).astype(np.float64))
+                                for i in frames])
+        return voxel_downsample(world, voxel_size)
 
     def relative_pose(self, i: int, j: int) -> np.ndarray:
         """T_j_i = inv(T_world_j) @ T_world_i: maps points of camera i into camera j."""
