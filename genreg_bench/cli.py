@@ -4,6 +4,7 @@
     genreg-bench --suite smoke --checkpoint /tmp/untrained.pt --out /tmp/bench_smoke
     genreg-bench --ablation pose-solver --datasets modelnet-unseen-clean --max-pairs 20 --out runs/ablation
     genreg-bench --suite partial --out build/bench_partial --object-checkpoint /root/genreg-runs/x/best.pt
+    genreg-bench --suite map --out runs/bench_map --threads 2 --pairs 20 --off-map 10
 
 --suite partial: the partial-overlap tables (RPM-Net-style ModelNet40 pairs; kidnapped redkitchen
 frame pairs 30, 60 and 90 apart and SUN3D ones 5 and 20 apart, at full resolution) with GenReg +
@@ -11,6 +12,15 @@ point-to-point / point-to-plane ICP beside ICP, FPFH + RANSAC + ICP (fast and ac
 + ICP and small_gicp; --frame-stride subsamples the frames (e.g. 2 for a quicker look). Rows with
 GenReg's confidence add its ROC AUC, ECE and confident-wrong count; reliability.png is the
 reliability diagram.
+
+--suite map: localisation in a prebuilt map (`genreg_bench.map_suite`): `MapLocalizer` without a guess and
+tracking from the pose 2 frames earlier, FPFH + RANSAC + ICP and KISS-Matcher + point-to-plane (gated on
+their fitness) on held-out scans of maps fused from redkitchen validation and SUN3D frames. --pairs sets
+the on-map scans per map (default 20), --off-map the off-map scans per map (default 10), --frame-stride the
+pixel stride of scans and maps (default 4), --map-voxel the maps' voxel, --combined-map adds the redkitchen +
+SUN3D-1 map 10 m apart, --methods picks among genreg, genreg-tracking, fpfh+ransac+icp and
+kiss-matcher+p2plane. It writes report.md, results.json and a map_<map>.png per map (map_redkitchen.png,
+map_sun3d-1.png, ...).
 
 --ablation runs the ablations on the suite's datasets instead of the method comparison
 (pose-solver: PDSAC against Open3D RANSAC on the same generated correspondences; backbone: GenReg
@@ -34,7 +44,7 @@ import time
 from genreg_core.config import OBJECT_MODEL, SCENE_MODEL
 
 ABLATIONS = ("pose-solver", "backbone")  # `ablation.ABLATIONS` (not imported here: torch loads after threads)
-SUITE_NAMES = ("smoke", "quick", "full", "partial")  # `datasets.SUITES` (likewise)
+SUITE_NAMES = ("smoke", "quick", "full", "partial", "map")  # `datasets.SUITES` (likewise), and the map suite
 
 
 def configure_threads(threads: int) -> None:
@@ -63,11 +73,16 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     p.add_argument("--methods", nargs="+", help="only these methods")
     p.add_argument("--max-pairs", type=int, help="at most this many pairs per dataset")
     p.add_argument("--pairs", type=int, help="this many pairs per dataset (evenly spread; all when it holds fewer) "
-                   "instead of the suite's counts")
+                   "instead of the suite's counts; --suite map: on-map scans per map (default 20)")
+    p.add_argument("--off-map", type=int, default=10, help="--suite map: off-map scans per map (default 10)")
+    p.add_argument("--map-voxel", type=float, default=0.02, help="--suite map: the maps' voxel, m (default 0.02)")
+    p.add_argument("--combined-map", action="store_true",
+                   help="--suite map: also the redkitchen + SUN3D-1 map, 10 m apart")
     p.add_argument("--object-points", type=int, default=512, help="points per ModelNet40 cloud (default 512)")
     p.add_argument("--fmr-points", type=int, default=1024, help="points per FMR-style cloud (default 1024)")
     p.add_argument("--frame-stride", type=int,
-                   help="real frames: every N-th pixel (default: the suite's, 4 for smoke, else 1 = full resolution)")
+                   help="real frames: every N-th pixel (default: the suite's, 4 for smoke and map, else 1 = full "
+                        "resolution)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--confidence-thresholds", type=float, nargs="+", default=[0.5, 0.9],
                    help="report the success rate above/below these confidences (default 0.5 0.9)")
@@ -84,6 +99,8 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     args = p.parse_args(argv)
     if args.backbones and any("=" not in b for b in args.backbones):
         p.error("--backbones takes NAME=CHECKPOINT pairs")
+    if args.suite == "map" and (args.ablation or args.from_json or args.datasets):
+        p.error("--suite map takes no --ablation, --from-json or --datasets")
     return args
 
 
@@ -96,6 +113,10 @@ def main(argv: list[str] | None = None) -> int:
     import open3d as o3d
 
     o3d.utility.set_verbosity_level(o3d.utility.VerbosityLevel.Error)  # RANSAC's mutual-filter notes
+    if args.suite == "map":
+        from genreg_bench.map_suite import run_map_suite
+
+        return run_map_suite(args)
     from genreg_bench.datasets import DATASETS, OBJECT, SCENE, SUITES, BenchOptions
     from genreg_bench.methods import DEFAULT_CHECKPOINTS
     from genreg_bench.report import load_run, write_report

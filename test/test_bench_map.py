@@ -1,0 +1,52 @@
+"""Map suite (`genreg-bench --suite map`): its ground truth puts held-out scans onto their map and off-map
+scans nowhere on it (checked on the data, no registration), and its figure is written."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scipy.spatial import cKDTree
+
+from genreg_bench.map_suite import off_map_scans, plot_map, sequence_case
+from genreg_core.config import data_root
+from genreg_core.data.rgbd import RGBDSequence
+
+STRIDE = 8  # every 8th pixel: a quick map
+ON_MAP_M = 0.02  # an on-map scan's median distance to the map stays below this, m
+needs_data = pytest.mark.skipif(not ((data_root() / "7scenes").is_dir() and (data_root() / "sun3d").is_dir()),
+                                reason="RGB-D data not available")
+
+
+def median_gap(points: np.ndarray, T: np.ndarray, tree: cKDTree) -> float:
+    """Median distance (m) from the points moved by T (x' = R x + t) to the nearest map point."""
+    moved = points.astype(np.float64) @ T[:3, :3].T + T[:3, 3]
+    return float(np.median(tree.query(moved, k=1)[0]))
+
+
+@needs_data
+def test_truth_puts_scans_on_the_map_and_off_map_scans_nowhere_on_it():
+    kitchen, sun = RGBDSequence.redkitchen(), RGBDSequence.sun3d(1)
+    map_frames = [800, 810, 820, 830]
+    off = off_map_scans([sun], [list(sun.frame_indices)], 1, STRIDE)
+    case = sequence_case("k", "kitchen", kitchen, map_frames, list(range(800, 830)), 3, off, STRIDE, 0.02)
+    tree = cKDTree(case.map_xyz)
+    assert len(case.scans) == 3 and len(case.off_map) == 1
+    for scan in case.scans:
+        assert scan.frame not in map_frames and scan.sequence == "redkitchen"
+        assert np.array_equal(scan.points, kitchen.points(scan.frame, stride=STRIDE))
+        assert median_gap(scan.points, scan.truth, tree) < ON_MAP_M, scan.frame
+        assert np.allclose(scan.guess, kitchen.pose(scan.frame - 2))  # tracking starts 2 frames back
+    scan = case.off_map[0]
+    assert scan.truth is None and scan.sequence == "sun3d-1"
+    assert np.array_equal(scan.points, sun.points(scan.frame, stride=STRIDE))
+    # no camera pose of the map's sequence puts it on the map (a kitchen frame would lie on it at one of them)
+    poses = [kitchen.pose(i) for i in range(800, 831)]
+    assert min(median_gap(scan.points, T, tree) for T in poses) > 2 * ON_MAP_M
+
+
+def test_plot_map_writes_a_png(tmp_path):
+    rng = np.random.default_rng(0)
+    map_xyz = rng.normal(size=(300, 3)) * [3.0, 1.5, 0.2]
+    path = plot_map(tmp_path / "map_synthetic.png", "synthetic", map_xyz, map_xyz[:3], np.array([0.01, 0.2, 0.03]),
+                    np.array([True, False, True]))
+    assert path.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and path.stat().st_size > 5000
