@@ -35,9 +35,12 @@ the Registrar raises (`genreg_core.errors`). Constants were chosen on redkitchen
 
 from __future__ import annotations
 
+import hashlib
+import os
 import time
 from collections.abc import Sequence
-from dataclasses import replace
+from dataclasses import dataclass, replace
+from pathlib import Path
 
 import numpy as np
 from scipy.spatial import cKDTree
@@ -71,14 +74,50 @@ TRACKING = "map_tracking"  # the calibration's model of tracking results (`Confi
 TRACK_POINTS = 2500  # tracking aligns and verifies at most this many of the voxelised scan's points (speed: 17 ms on a kitchen map, 42 with 5000, as accurate)
 TRACK_DISTANCE = 10.0  # tracking's GICP correspondence distance, map voxels
 TRACK_ITERATIONS = 30  # and its iterations
+LOCAL_RADIUS = 3.0  # tracking's local map: the map within this many scan radii of the guessed scan centre
+LOCAL_KEEP = 1.0  # kept while the guessed scan centre stays within this many scan radii of its centre
+PLACE_POINTS = 4096  # a place keeps at most this many of its map rows (a random subset; the model samples 512;
+# redkitchen training maps, places only: 29 of 30 scans placed with 4096, 8192 or all, about 34k)
+EXTENT_SAMPLES = 200_000  # the map's robust extent from this many of its points
 
 
-def median_spacing(points: np.ndarray, samples: int = SPACING_SAMPLES, seed: int = 0) -> float:
-    """The median distance from a point to its nearest other point, over up to `samples` points."""
-    tree = cKDTree(points)
+def median_spacing(points: np.ndarray, samples: int = SPACING_SAMPLES, seed: int = 0,
+                   tree: cKDTree | None = None) -> float:
+    """The median distance from a point to its nearest other point, over up to `samples` points (`tree`:
+    the points' k-d tree, if built)."""
+    tree = tree if tree is not None else cKDTree(points)
     rows = np.random.default_rng(seed).choice(len(points), size=min(samples, len(points)), replace=False)
     distances, _ = tree.query(points[rows], k=2)
     return float(np.median(distances[:, 1]))
+
+
+def kd_tree(points: np.ndarray) -> cKDTree:
+    """A k-d tree of (M, 3) float64 points that builds fast (unbalanced, leaves of 64, sharing the array:
+    10 M points in 1.5 s, 4.2 s with scipy's defaults) and answers radius queries as fast."""
+    return cKDTree(points, leafsize=64, balanced_tree=False, compact_nodes=False, copy_data=False)
+
+
+def occupied_cells(points: np.ndarray, spacing: float) -> np.ndarray:
+    """The distinct integer cells (K, 3) of a grid with this spacing that hold points, in lexicographic
+    order (as np.unique(..., axis=0), which takes 14 s on 10 M points; one integer key per cell: 0.5 s)."""
+    cells = np.floor(points / spacing).astype(np.int64)
+    low = cells.min(axis=0)
+    size = cells.max(axis=0) - low + 1
+    if float(np.prod(size.astype(np.float64))) >= 2.0 ** 62:
+        return np.unique(cells, axis=0)
+    keys = np.unique(((cells[:, 0] - low[0]) * size[1] + cells[:, 1] - low[1]) * size[2] + cells[:, 2] - low[2])
+    return np.stack([keys // (size[1] * size[2]), keys // size[2] % size[1], keys % size[2]], axis=1) + low
+
+
+@dataclass(frozen=True)
+class LocalMap:
+    """Tracking's part of the map: the map within a radius of `centre`, prepared for GICP and scoring."""
+
+    centre: np.ndarray  # (3,)
+    radius: float
+    whole: bool  # it holds the whole map (never rebuilt)
+    index: TargetIndex
+    gicp: GICPTarget
 
 
 class MapLocalizer:
@@ -102,11 +141,13 @@ class MapLocalizer:
         batch_size: int = 16,
         track_below: float = 0.5,
         threads: int | None = None,
+        cache_dir: str | os.PathLike | None = None,
     ) -> None:
         """`map_xyz`: (M, 3) map points (metres, or any units the scans share); `voxel_size`: the map's
         resolution (None: its median nearest-neighbour spacing); `registrar`: a loaded one instead of
-        `checkpoint` + `config`; `threads`: tracking's threads (default: OMP_NUM_THREADS, else 1); the other
-        settings as in the module docstring."""
+        `checkpoint` + `config`; `threads`: tracking's threads (default: OMP_NUM_THREADS, else 1);
+        `cache_dir`: where the candidate places are kept between runs (files keyed by the map's content
+        hash and the settings; None: in memory only); the other settings as in the module docstring."""
         config = config or SCENE_REGISTRATION
         self.registrar = registrar or Registrar.from_checkpoint(checkpoint, config)
         min_points = self.registrar.config.min_points
@@ -124,12 +165,16 @@ class MapLocalizer:
         if voxel_size is not None and not (np.isfinite(voxel_size) and voxel_size >= 0):
             raise ConfigError(f"voxel_size must be >= 0, got {voxel_size!r}")
         self.map = np.ascontiguousarray(finite, dtype=np.float64)
-        self.tree = cKDTree(self.map)
-        self.voxel_size = median_spacing(self.map) if voxel_size is None else float(voxel_size)
-        self.index = TargetIndex(self.map, threads, spacing=self.voxel_size)  # tracking's scores
-        self.gicp = GICPTarget(self.map, tree=self.index.tree, threads=self.index.threads)  # tracking's GICP
+        self.tree = kd_tree(self.map)
+        self.voxel_size = median_spacing(self.map, tree=self.tree) if voxel_size is None else float(voxel_size)
+        self.threads = threads or int(os.environ.get("OMP_NUM_THREADS") or 1)
         self.track_below = track_below
-        _, self.extent = robust_extent(self.map)
+        self._local: LocalMap | None = None
+        rng = np.random.default_rng(0)
+        sample = self.map if len(self.map) <= EXTENT_SAMPLES else self.map[rng.choice(len(self.map), EXTENT_SAMPLES)]
+        _, self.extent = robust_extent(sample)
+        self.cache_dir = None if cache_dir is None else Path(cache_dir)
+        self._key = hashlib.sha1(self.map.data).hexdigest()[:16] if cache_dir is not None else ""
         self.candidates = candidates
         self.whole_map_ratio = whole_map_ratio
         self.accept_whole = accept_whole
@@ -146,20 +191,47 @@ class MapLocalizer:
     def places(self, radius: float) -> list[np.ndarray]:
         """The candidate places for scans of this radius, as map row indices: the map points within
         `place_radius` x `radius` of each centre of an occupied grid cell (grid spacing `place_spacing` x
-        `radius`) as int32 rows (places overlap: about 60 per map point at the default spacing and radius;
-        a random subset per place placed fewer redkitchen training scans); places with fewer points than
-        registration needs are dropped. Built on first use, cached by radius."""
+        `radius`) as sorted int32 rows, at most `PLACE_POINTS` of them (a random subset: places overlap,
+        about 60 per map point at the default spacing and radius); places with fewer points than
+        registration needs are dropped. Built on first use, kept by radius (and in `cache_dir`)."""
         if radius not in self._places:
-            spacing = self.place_spacing * radius
-            cells = np.unique(np.floor(self.map / spacing).astype(np.int64), axis=0)
-            centres = (cells + 0.5) * spacing
-            minimum, kept = self.registrar.config.min_points, []
-            for start in range(0, len(centres), PLACE_CHUNK):  # a chunk at a time: large maps, few lists alive
-                for rows in self.tree.query_ball_point(centres[start: start + PLACE_CHUNK], self.place_radius * radius):
-                    if len(rows) >= minimum:
-                        kept.append(np.asarray(rows, dtype=np.int32))
-            self._places[radius] = kept
+            path = None if self.cache_dir is None else self.cache_dir / (
+                f"places-{self._key}-r{radius:.6g}-s{self.place_spacing:.6g}-p{self.place_radius:.6g}"
+                f"-n{PLACE_POINTS}-m{self.registrar.config.min_points}.npz")
+            if path is not None and path.is_file():
+                with np.load(path) as cached:
+                    self._places[radius] = np.split(cached["rows"], cached["ends"][:-1])
+            else:
+                self._places[radius] = self.build_places(radius)
+                if path is not None:
+                    path.parent.mkdir(parents=True, exist_ok=True)
+                    rows = np.concatenate(self._places[radius]) if self._places[radius] else np.zeros(0, np.int32)
+                    ends = np.cumsum([len(r) for r in self._places[radius]], dtype=np.int64)
+                    np.savez(path.with_suffix(".tmp.npz"), rows=rows, ends=ends)
+                    os.replace(path.with_suffix(".tmp.npz"), path)  # whole or absent, never half-written
         return self._places[radius]
+
+    def build_places(self, radius: float) -> list[np.ndarray]:
+        """`places` built from the map (seeded: the same map gives the same places). When places are much
+        larger than `PLACE_POINTS` (a building), they are searched in a random share of the map that
+        leaves them about twice that many points (a random subset of a random subset: 10 M points in
+        seconds, not a minute); maps whose places are smaller are searched whole."""
+        spacing, reach = self.place_spacing * radius, self.place_radius * radius
+        centres = (occupied_cells(self.map, spacing) + 0.5) * spacing
+        minimum, kept, rng = self.registrar.config.min_points, [], np.random.default_rng(0)
+        probe = centres[rng.choice(len(centres), min(len(centres), 64), replace=False)]
+        typical = float(np.median(self.tree.query_ball_point(probe, reach, return_length=True)))
+        share = min(1.0, 2.0 * PLACE_POINTS / max(typical, 1.0))
+        rows_of = np.flatnonzero(rng.random(len(self.map)) < share) if share < 1.0 else None
+        tree = self.tree if rows_of is None else kd_tree(self.map[rows_of])
+        for start in range(0, len(centres), PLACE_CHUNK):  # a chunk at a time: large maps, few lists alive
+            for rows in tree.query_ball_point(centres[start: start + PLACE_CHUNK], reach, workers=self.threads):
+                if len(rows) >= minimum:
+                    rows = np.asarray(rows, dtype=np.int64) if rows_of is None else rows_of[rows]
+                    if len(rows) > PLACE_POINTS:
+                        rows = rng.choice(rows, PLACE_POINTS, replace=False)
+                    kept.append(np.sort(rows).astype(np.int32))
+        return kept
 
     def crop(self, centre: np.ndarray, radius: float) -> np.ndarray:
         """The map points within `radius` of `centre`."""
@@ -206,27 +278,48 @@ class MapLocalizer:
         calibration = self.registrar.calibration
         return calibration is not None and calibration.serves(TRACKING)
 
-    def track(self, scan: np.ndarray, guess: np.ndarray) -> RegistrationResult:
+    def local(self, centre: np.ndarray, radius: float) -> LocalMap | None:
+        """Tracking's local map for a scan of this radius guessed at `centre`: the map within `LOCAL_RADIUS`
+        x `radius` of it, prepared once and kept while the guessed centre stays within `LOCAL_KEEP` x
+        `radius` of the local map's (or it holds the whole map); None when it holds too few points."""
+        local = self._local
+        if local is not None and local.radius == radius and (
+                local.whole or np.linalg.norm(centre - local.centre) <= LOCAL_KEEP * radius):
+            return local
+        rows = np.sort(np.asarray(self.tree.query_ball_point(centre, LOCAL_RADIUS * radius), dtype=np.int64))
+        if len(rows) < self.registrar.config.min_points:
+            return None
+        points = self.map[rows]
+        index = TargetIndex(points, self.threads, spacing=self.voxel_size)
+        self._local = LocalMap(np.array(centre, dtype=np.float64), radius, len(rows) == len(self.map), index,
+                               GICPTarget(points, tree=index.tree, threads=self.threads))
+        return self._local
+
+    def track(self, scan: np.ndarray, guess: np.ndarray) -> RegistrationResult | None:
         """The voxelised scan aligned by GICP from `guess` (T_map_scan) against the whole map, verified as a
         registration is (`confidence.FEATURES`, inlier ratio 1: no network pass; the result's `inlier_ratio`
         and generated clouds are empty: NaN and (0, 3)). Its confidence is the `TRACKING` model's
         probability, else (uncalibrated) the geometric mean of fitness and tight fitness; both times the
-        degeneracy factor."""
+        degeneracy factor. None when the map holds too few points around the guess."""
         t0 = time.perf_counter()
+        centroid, radius, _ = self.scan_geometry(scan)
+        local = self.local(apply_transform(guess, centroid[None])[0], radius)
+        if local is None:
+            return None
         rows = np.random.default_rng(self.registrar.config.seed).permutation(len(scan))[:TRACK_POINTS]
         sample = scan[np.sort(rows)]
-        voxel, threads = self.voxel_size, self.index.threads
-        T = self.gicp.align(sample, guess, max_distance=TRACK_DISTANCE * voxel, max_iterations=TRACK_ITERATIONS,
-                            threads=threads)
+        voxel, index = self.voxel_size, local.index
+        T = local.gicp.align(sample, guess, max_distance=TRACK_DISTANCE * voxel, max_iterations=TRACK_ITERATIONS,
+                             threads=self.threads)
         t1 = time.perf_counter()
         moved = apply_transform(T, sample)
         distance = FITNESS_SPACINGS * voxel
-        shares = overlap_shares(sample, self.index, T, np.multiply(SPACINGS, voxel))
-        fitness, tight = (float(x) for x in overlap_shares(sample, self.index, T, np.array([distance, TIGHT_SPACINGS * voxel])))
-        _, squared = self.index.nearest(moved)
+        shares = overlap_shares(sample, index, T, np.multiply(SPACINGS, voxel))
+        fitness, tight = (float(x) for x in overlap_shares(sample, index, T, np.array([distance, TIGHT_SPACINGS * voxel])))
+        _, squared = index.nearest(moved)
         close = squared < distance * distance
-        unconstrained, constraint = unconstrained_directions(moved, self.index, distance)
-        covariance = pose_covariance(moved, self.index, T[:3, 3], distance, COVARIANCE_INFLATION,
+        unconstrained, constraint = unconstrained_directions(moved, index, distance)
+        covariance = pose_covariance(moved, index, T[:3, 3], distance, COVARIANCE_INFLATION,
                                      (COVARIANCE_FLOOR_M, COVARIANCE_FLOOR_RAD))
         verification = features(shares, 1.0, constraint)
         calibration = self.registrar.calibration

@@ -13,7 +13,7 @@ from scipy.spatial.transform import Rotation
 from genreg_core.data.rgbd import RGBDSequence
 from genreg_core.errors import InvalidPointCloudError, NonFinitePointsError, TooFewPointsError
 from genreg_core.geometry import apply_transform, make_transform
-from genreg_core.localization import MapLocalizer
+from genreg_core.localization import PLACE_POINTS, MapLocalizer
 from genreg_core.metrics import transform_errors
 from genreg_core.preprocess import voxel_downsample
 
@@ -93,8 +93,11 @@ def test_gicp_on_a_prepared_target_equals_small_gicps_own_alignment(kitchen):
     seq, loc = kitchen
     scan = voxel_downsample(seq.points(855, stride=STRIDE).astype(np.float64), loc.voxel_size)
     guess = make_transform(Rotation.from_rotvec([0.0, 0.05, 0.02]).as_matrix(), [0.05, -0.03, 0.02]) @ seq.pose(855)
-    fast = loc.gicp.align(scan, guess, max_distance=0.2, max_iterations=30)
-    assert loc.gicp.neighbours == 10  # small_gicp's own for arrays; its 1e-5 m voxels keep every point
+    centroid, radius, _ = loc.scan_geometry(scan)
+    local = loc.local(apply_transform(guess, centroid[None])[0], radius)
+    assert local.whole and len(local.index.points) == len(loc.map)  # a kitchen: the whole map, built once
+    fast = local.gicp.align(scan, guess, max_distance=0.2, max_iterations=30)
+    assert local.gicp.neighbours == 10  # small_gicp's own for arrays; its 1e-5 m voxels keep every point
     reference = small_gicp.align(loc.map, scan, guess, registration_type="GICP", downsampling_resolution=1e-5,
                                  max_correspondence_distance=0.2, max_iterations=30).T_target_source
     assert np.abs(fast - reference).max() < 1e-4  # 0.1 mm: its voxels reorder the points, the sums round apart
@@ -106,6 +109,33 @@ def test_a_fused_sequence_map_is_open3ds_fusion_of_the_posed_frames(kitchen):
     mine = seq.fused(MAP_FRAMES, stride=STRIDE, voxel_size=0.02)
     assert abs(len(mine) - len(loc.map)) < 0.05 * len(loc.map)
     assert np.median(cKDTree(loc.map).query(mine)[0]) < 0.01 and cKDTree(mine).query(loc.map)[0].max() < 0.04
+
+
+def test_places_are_capped_and_kept_on_disk_by_the_maps_content(kitchen, tmp_path, monkeypatch):
+    _, loc = kitchen
+    built = MapLocalizer(loc.map, registrar=loc.registrar, voxel_size=loc.voxel_size, cache_dir=tmp_path).places(0.8)
+    assert max(len(rows) for rows in built) <= PLACE_POINTS and len(list(tmp_path.glob("places-*.npz"))) == 1
+    again = MapLocalizer(loc.map, registrar=loc.registrar, voxel_size=loc.voxel_size, cache_dir=tmp_path)
+    monkeypatch.setattr(again, "build_places", lambda radius: pytest.fail("built again, not read from the cache"))
+    cached = again.places(0.8)
+    assert len(cached) == len(built) and all(np.array_equal(a, b) for a, b in zip(cached, built, strict=True))
+    moved = MapLocalizer(loc.map + 1.0, registrar=loc.registrar, voxel_size=loc.voxel_size, cache_dir=tmp_path)
+    moved.places(0.8)  # another map: another file
+    assert len(list(tmp_path.glob("places-*.npz"))) == 2
+
+
+def test_tracking_in_a_map_larger_than_the_view_uses_a_local_map_and_moves_it(kitchen):
+    """Two copies of the kitchen 20 m apart: tracking builds the map around the guess, not the whole map,
+    and builds it anew where the next guess is."""
+    seq, loc = kitchen
+    shift = make_transform(np.eye(3), [20.0, 0.0, 0.0])
+    both = MapLocalizer(np.concatenate([loc.map, apply_transform(shift, loc.map)]), registrar=loc.registrar,
+                        voxel_size=loc.voxel_size)
+    for truth in (shift @ seq.pose(855), seq.pose(855)):
+        result = both.localize(seq.points(855, stride=STRIDE), initial_guess=truth)
+        re, te = transform_errors(result.transformation, truth)
+        assert re < 2.0 and te < 0.05 and result.confidence >= 0.5 and np.isnan(result.inlier_ratio), (re, te)
+        assert not both._local.whole and np.linalg.norm(both._local.centre - truth[:3, 3]) < 3.0
 
 
 def test_bad_input_raises_the_registrars_named_errors(kitchen):
