@@ -153,14 +153,18 @@ def test_bad_input_raises_the_registrars_named_errors(kitchen):
         MapLocalizer(np.zeros((10, 2)), registrar=loc.registrar)
 
 
-def test_places_cover_the_map_and_voxelize_keeps_one_centroid_per_voxel(kitchen):
+def test_places_cover_the_map_and_voxelize_keeps_one_centroid_per_voxel(kitchen, monkeypatch):
     _, loc = kitchen
     radius = 0.8
     places = loc.places(radius)
     assert places is loc.places(radius)  # cached by radius
-    assert all(loc.registrar.config.min_points <= len(rows) < len(loc.map) for rows in places)
-    covered = cKDTree(loc.map[np.unique(np.concatenate(places))])
+    assert all(loc.registrar.config.min_points <= len(rows) <= PLACE_POINTS for rows in places)
+    monkeypatch.setattr("genreg_core.localization.PLACE_POINTS", len(loc.map))  # whole places: their regions
+    whole = MapLocalizer(loc.map, registrar=loc.registrar, voxel_size=loc.voxel_size).places(radius)
+    assert all(len(rows) < len(loc.map) for rows in whole)
+    covered = cKDTree(loc.map[np.unique(np.concatenate(whole))])
     assert covered.query(loc.map, k=1)[0].max() < loc.place_spacing * radius  # no part of the map left out
+    assert len(whole) == len(places) and all(np.isin(a, b).all() for a, b in zip(places, whole, strict=True))
     points = np.array([[0.01, 0.01, 0.01], [0.03, 0.03, 0.03], [0.11, 0.0, 0.0]])
     assert np.allclose(voxel_downsample(points, 0.1), [[0.02, 0.02, 0.02], [0.11, 0.0, 0.0]])
 
