@@ -2,7 +2,7 @@
 registration, on held-out scans.
 
 Maps are fused from held-out frames (each frame's points moved by its ground-truth pose into the world
-frame, concatenated, voxelised; metres): redkitchen validation frames 800-990 every 10th, each SUN3D fragment
+frame, concatenated, voxelised: `RGBDSequence.fused`; metres): redkitchen validation frames 800-990 every 10th, each SUN3D fragment
 every 5th frame and, with --combined-map, the redkitchen and SUN3D-1 maps side by side 10 m apart (one map
 larger than any scan: the candidate places do the work). Scans are the frames between map frames (an evenly
 spread subset per map); off-map scans come from another building (SUN3D for redkitchen, redkitchen for SUN3D,
@@ -37,7 +37,6 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-import open3d as o3d
 import torch
 from scipy.spatial import cKDTree
 from tqdm import tqdm
@@ -81,15 +80,6 @@ class MapCase:
     off_map: list[Scan] = field(default_factory=list)
 
 
-def fused(seq: RGBDSequence, frames: list[int], stride: int, voxel: float, shift: np.ndarray | None = None) -> np.ndarray:
-    """A map (M, 3) in metres: the frames' points moved by their poses into the world frame, concatenated,
-    voxelised at `voxel` m (Open3D) and moved by `shift`."""
-    world = np.concatenate([apply_transform(seq.pose(i), seq.points(i, stride=stride).astype(np.float64))
-                            for i in frames])
-    cloud = np.asarray(o3d.geometry.PointCloud(o3d.utility.Vector3dVector(world)).voxel_down_sample(voxel).points)
-    return cloud if shift is None else cloud + shift
-
-
 def spread(items: list[Any], n: int) -> list[Any]:
     """n items evenly spread over the list (all of them if n >= its length)."""
     if n >= len(items):
@@ -126,7 +116,7 @@ def sequence_case(key: str, name: str, seq: RGBDSequence, map_frames: list[int],
     """A map fused from `map_frames` and `n_scans` scans from the frames of `pool` between them."""
     on = set(map_frames)
     between = [i for i in pool if i in seq and i not in on]
-    return MapCase(key, name, fused(seq, map_frames, stride, voxel, shift),
+    return MapCase(key, name, seq.fused(map_frames, stride, voxel) + (0.0 if shift is None else shift),
                    on_map_scans(seq, between, n_scans, stride, shift), off_map)
 
 
