@@ -38,6 +38,8 @@ from __future__ import annotations
 import hashlib
 import os
 import time
+import warnings
+import zipfile
 from collections.abc import Sequence
 from dataclasses import dataclass, replace
 from pathlib import Path
@@ -107,6 +109,28 @@ def occupied_cells(points: np.ndarray, spacing: float) -> np.ndarray:
         return np.unique(cells, axis=0)
     keys = np.unique(((cells[:, 0] - low[0]) * size[1] + cells[:, 1] - low[1]) * size[2] + cells[:, 2] - low[2])
     return np.stack([keys // (size[1] * size[2]), keys // size[2] % size[1], keys % size[2]], axis=1) + low
+
+
+def read_places(path: Path) -> list[np.ndarray] | None:
+    """Places written by `write_places`, or None when the file cannot be read (it is then built again)."""
+    try:
+        with np.load(path) as cached:
+            return np.split(cached["rows"], cached["ends"][:-1])
+    except (OSError, ValueError, KeyError, zipfile.BadZipFile):
+        return None
+
+
+def write_places(path: Path, places: list[np.ndarray]) -> None:
+    """Places as one file, whole or absent (written aside, then renamed); a folder that cannot be written
+    leaves them in memory only, with a warning."""
+    rows = np.concatenate(places) if places else np.zeros(0, np.int32)
+    ends = np.cumsum([len(r) for r in places], dtype=np.int64)
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        np.savez(path.with_suffix(".tmp.npz"), rows=rows, ends=ends)
+        os.replace(path.with_suffix(".tmp.npz"), path)
+    except OSError as exc:
+        warnings.warn(f"map places not cached in {path.parent}: {exc.strerror or exc}", stacklevel=3)
 
 
 @dataclass(frozen=True)
@@ -198,17 +222,10 @@ class MapLocalizer:
             path = None if self.cache_dir is None else self.cache_dir / (
                 f"places-{self._key}-r{radius:.6g}-s{self.place_spacing:.6g}-p{self.place_radius:.6g}"
                 f"-n{PLACE_POINTS}-m{self.registrar.config.min_points}.npz")
-            if path is not None and path.is_file():
-                with np.load(path) as cached:
-                    self._places[radius] = np.split(cached["rows"], cached["ends"][:-1])
-            else:
-                self._places[radius] = self.build_places(radius)
-                if path is not None:
-                    path.parent.mkdir(parents=True, exist_ok=True)
-                    rows = np.concatenate(self._places[radius]) if self._places[radius] else np.zeros(0, np.int32)
-                    ends = np.cumsum([len(r) for r in self._places[radius]], dtype=np.int64)
-                    np.savez(path.with_suffix(".tmp.npz"), rows=rows, ends=ends)
-                    os.replace(path.with_suffix(".tmp.npz"), path)  # whole or absent, never half-written
+            cached = read_places(path) if path is not None and path.is_file() else None
+            self._places[radius] = cached if cached is not None else self.build_places(radius)
+            if path is not None and cached is None:
+                write_places(path, self._places[radius])
         return self._places[radius]
 
     def build_places(self, radius: float) -> list[np.ndarray]:

@@ -713,8 +713,10 @@ class RegisterNode(LifecycleNode):
         cached = self._localizer
         if cached is not None and cached[0] is map_points:
             return cached[1]
+        cache = None if not c.target_file else Path(c.target_file).expanduser().with_name(
+            Path(c.target_file).name + ".genreg-cache")  # a map file's candidate places, kept beside it
         try:
-            localizer = MapLocalizer(map_points, registrar=registrar)
+            localizer = MapLocalizer(map_points, registrar=registrar, cache_dir=cache)
         except GenRegError as exc:
             self._fail(failure_reason(exc), f"the map cannot be used: {exc}")
             return None

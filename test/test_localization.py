@@ -122,6 +122,15 @@ def test_places_are_capped_and_kept_on_disk_by_the_maps_content(kitchen, tmp_pat
     moved = MapLocalizer(loc.map + 1.0, registrar=loc.registrar, voxel_size=loc.voxel_size, cache_dir=tmp_path)
     moved.places(0.8)  # another map: another file
     assert len(list(tmp_path.glob("places-*.npz"))) == 2
+    for path in tmp_path.glob("places-*.npz"):
+        path.write_bytes(path.read_bytes()[:100])  # truncated: built again, and written whole
+    rebuilt = MapLocalizer(loc.map, registrar=loc.registrar, voxel_size=loc.voxel_size, cache_dir=tmp_path).places(0.8)
+    assert all(np.array_equal(a, b) for a, b in zip(rebuilt, built, strict=True))
+    (tmp_path / "a_file").write_text("")
+    with pytest.warns(UserWarning, match="not cached"):  # a cache folder that cannot be made: memory only
+        kept = MapLocalizer(loc.map, registrar=loc.registrar, voxel_size=loc.voxel_size,
+                            cache_dir=tmp_path / "a_file" / "cache").places(0.8)
+    assert len(kept) == len(built)
 
 
 def test_tracking_in_a_map_larger_than_the_view_uses_a_local_map_and_moves_it(kitchen):
