@@ -3,8 +3,10 @@ localised in a map fused from its validation frames, against the ground-truth po
 dataset's world frame, so a scan's true pose in the map is `pose(i)`).
 
 The node runs with config/genreg_map.yaml as shipped (plus a short diagnostics period). The map is published
-once on `target_cloud` by a reliable, transient_local publisher before the node exists (a latched map); the
-scans come from a best-effort publisher (SensorDataQoS, as a camera driver's). What is checked: the first scan
+once on `target_cloud` by a reliable, transient_local publisher before the node exists (a latched map). The
+scans are a recorded stream: a bag (genreg_ros.bag.writer, with the ground-truth poses beside them) of a
+camera that tracks, is kidnapped, looks at another building and comes back; each is replayed as recorded
+(its serialised bytes) by a best-effort publisher (SensorDataQoS, as a camera driver's), one at a time. What is checked: the first scan
 is placed without a guess (`localization: global`), the next ones track, a kidnapped camera is relocalised
 within three scans, an off-map scan (SUN3D) publishes no pose and tracking turns lost, `~/relocalize`
 localises the next scan without a guess, and RViz's `initialpose` is the next scan's guess.
@@ -25,6 +27,8 @@ from test_node import diag_values, errors, node_process, stamp, wait_subscribed
 
 from genreg_core.data.rgbd import RGBDSequence
 from genreg_core.geometry import apply_transform
+from genreg_ros.bag.reader import BagData, read_bag
+from genreg_ros.bag.writer import BagWriter, Frame
 from genreg_ros.config import CONFIG_DIR
 from genreg_ros.conversions import matrix_to_pose_msg, msg_to_matrix
 from genreg_ros.pointcloud2 import xyz_to_msg
@@ -41,6 +45,22 @@ def fused_map(seq: RGBDSequence) -> np.ndarray:
     world = np.concatenate([apply_transform(seq.pose(i), seq.points(i, stride=STRIDE).astype(np.float64))
                             for i in MAP_FRAMES])
     return np.asarray(o3d.geometry.PointCloud(o3d.utility.Vector3dVector(world)).voxel_down_sample(0.02).points)
+
+
+STREAM = [("redkitchen", i) for i in (805, 808, 811, 975, 977, 979)] + [("sun3d-1", 940)] * 2 + [
+    ("redkitchen", i) for i in (983, 985, 987, 945)]  # the recorded camera: (sequence, frame)
+
+
+def record(path, seq: RGBDSequence) -> BagData:
+    """The bag of STREAM: clouds stamped 101 s, 102 s, ... in the camera frame, and T_map_camera (the map
+    frame is the dataset's world frame) for the scans of the mapped sequence; read back."""
+    sun3d = RGBDSequence.sun3d(1)
+    with BagWriter(path, frame_id=CAMERA, world_frame=MAP_FRAME_ID) as bag:
+        for k, (name, i) in enumerate(STREAM):
+            on_map = name == "redkitchen"
+            points = (seq if on_map else sun3d).points(i, stride=STRIDE)
+            bag.write_frame(Frame(i, int((101 + k) * 1e9), points, pose=seq.pose(i) if on_map else None))
+    return read_bag(path, decode=False)
 
 
 @pytest.fixture(scope="module")
@@ -63,32 +83,38 @@ def mapped(ros_namespace, tmp_path_factory):
         wait_subscribed(h, held["scans"], held["pub"])
         h.wait(lambda: any(diag_values(s).get("received.target") == "1" for m in h.diagnostics for s in m.status),
                15.0, "the latched map received")
-        yield h, seq, held["scans"], log_path
+        yield h, record(tmp_path_factory.mktemp("bag") / "scans", seq), held["scans"], log_path
 
 
 class Scans:
-    """Scans sent one at a time (each waits for its registration_status), stamped 100 s, 101 s, ..."""
+    """The bag's scans replayed one at a time (each waits for its registration_status), in order; a scan
+    may be skipped (the stamps still only grow)."""
 
-    def __init__(self, h, pub) -> None:
-        self.h, self.pub, self.t = h, pub, 100.0
+    def __init__(self, h, pub, bag: BagData) -> None:
+        self.h, self.pub, self.bag, self.next = h, pub, bag, 0
+        self.t = 0.0  # the last stamp sent, s
 
-    def send(self, points: np.ndarray) -> tuple[dict[str, str], np.ndarray | None]:
-        """(the scan's registration_status values, its published pose T_map_camera or None)."""
-        self.t += 1.0
+    def send(self, frame: int) -> tuple[dict[str, str], np.ndarray | None, np.ndarray | None]:
+        """(registration_status values, the published pose T_map_camera or None, the bag's truth or None) of
+        the next recorded scan of this frame."""
+        k = next(k for k in range(self.next, len(STREAM)) if STREAM[k][1] == frame)
+        self.next = k + 1
+        cloud = self.bag.clouds[k]
+        assert cloud.frame_id == CAMERA
+        self.t = cloud.stamp_ns / 1e9
         header = stamp(self.t)
-        msg = xyz_to_msg(header, points)
-        msg.header.frame_id = CAMERA
-        self.pub.publish(msg)
+        self.pub.publish(cloud.raw)  # the recorded bytes (CDR), as a bag player sends them
+        truth = self.bag.pose_at(cloud.stamp_ns)
         result = self.h.result_for(header, timeout=60.0)
         status = {**diag_values(result), "message": result.message}
         assert status["target_frame"] == MAP_FRAME_ID and status["source_frame"] == CAMERA, status
         if status["published"] != "true":
-            return status, None
+            return status, None, truth
         key = (header.stamp.sec, header.stamp.nanosec)
         find = lambda: [m for m in self.h.poses if (m.header.stamp.sec, m.header.stamp.nanosec) == key]
         self.h.wait(find, 10.0, "the scan's pose")
         with self.h.lock:
-            return status, msg_to_matrix(find()[-1].pose)
+            return status, msg_to_matrix(find()[-1].pose), truth
 
 
 def check_pose(T: np.ndarray | None, truth: np.ndarray, what: str, status: dict[str, str]) -> None:
@@ -98,64 +124,63 @@ def check_pose(T: np.ndarray | None, truth: np.ndarray, what: str, status: dict[
 
 
 def test_scans_are_localised_tracked_relocalised_and_off_map_scans_publish_nothing(mapped):
-    h, seq, pub, log = mapped
-    scans = Scans(h, pub)
+    h, bag, pub, log = mapped
+    scans = Scans(h, pub, bag)
     t0 = time.monotonic()
 
-    status, T = scans.send(seq.points(805, stride=STRIDE))  # the first scan: no guess
+    status, T, truth = scans.send(805)  # the first scan: no guess
     assert status["localization"] == "global" and status["initial_guess"] == "none", status
     assert status["message"].startswith("global: published"), status
-    check_pose(T, seq.pose(805), "first scan", status)
+    check_pose(T, truth, "first scan", status)
     for i in (808, 811):  # from the last accepted pose
-        status, T = scans.send(seq.points(i, stride=STRIDE))
+        status, T, truth = scans.send(i)
         assert status["localization"] == "tracking" and status["initial_guess"] == "last_result", status
-        check_pose(T, seq.pose(i), f"tracked scan {i}", status)
+        check_pose(T, truth, f"tracked scan {i}", status)
 
     # kidnapped: the camera jumps about 1 m and 35 deg (frames from another part of the sequence)
-    assert errors(seq.pose(975), seq.pose(811))[0] > 30.0
+    assert errors(bag.pose_at(bag.clouds[3].stamp_ns), bag.pose_at(bag.clouds[2].stamp_ns))[0] > 30.0
     states = []
     for n, i in enumerate((975, 977, 979)):
-        status, T = scans.send(seq.points(i, stride=STRIDE))
+        status, T, truth = scans.send(i)
         states.append(status["localization"])
         if T is not None:
-            check_pose(T, seq.pose(i), f"kidnapped scan {i}", status)  # every pose published is right
+            check_pose(T, truth, f"kidnapped scan {i}", status)  # every pose published is right
             break
     else:
         raise AssertionError(f"the kidnapped camera was not relocalised within 3 scans: {states}")
     assert n == 0 or status["localization"] == "global", states
 
     # off the map (another building): no pose, tracking lost after map.lost_after (2) misses
-    sun3d = RGBDSequence.sun3d(1).points(940, stride=STRIDE)
     for expected in ("tracking", "lost"):
-        status, T = scans.send(sun3d)
-        assert T is None and status["published"] == "false", status
+        status, T, truth = scans.send(940)
+        assert truth is None and T is None and status["published"] == "false", status
         assert status["localization"] == expected, status
     assert status["message"].startswith("lost: rejected: confidence"), status
     diag = diag_values(h.status(after=time.monotonic()))
     assert diag["localization"] == "lost" and int(diag["tracking_lost"]) >= 1, diag
 
-    status, T = scans.send(seq.points(983, stride=STRIDE))  # back on the map: lost -> global
+    status, T, truth = scans.send(983)  # back on the map: lost -> global
     assert status["localization"] == "global" and status["initial_guess"] == "none", status
-    check_pose(T, seq.pose(983), "scan after lost", status)
-    status, T = scans.send(seq.points(985, stride=STRIDE))
+    check_pose(T, truth, "scan after lost", status)
+    status, T, truth = scans.send(985)
     assert status["localization"] == "tracking", status
-    check_pose(T, seq.pose(985), "tracked scan 985", status)
+    check_pose(T, truth, "tracked scan 985", status)
 
     response = h.call(Trigger, "relocalize")
     assert response.success, response.message
-    status, T = scans.send(seq.points(987, stride=STRIDE))
+    status, T, truth = scans.send(987)
     assert status["localization"] == "global" and status["initial_guess"] == "none", status
-    check_pose(T, seq.pose(987), "scan after ~/relocalize", status)
+    check_pose(T, truth, "scan after ~/relocalize", status)
 
     # RViz's 2D Pose Estimate: the next scan's guess (a pose 5 cm and a little rotation off the truth)
-    guess = seq.pose(945).copy()
+    guess = bag.pose_at(bag.clouds[-1].stamp_ns).copy()
     guess[:3, 3] += [0.03, -0.03, 0.03]
     h.pub_initialpose.publish(matrix_to_pose_msg(guess, Header(stamp=stamp(scans.t).stamp, frame_id=MAP_FRAME_ID),
                                                  None))
     time.sleep(0.5)
-    status, T = scans.send(seq.points(945, stride=STRIDE))
+    status, T, truth = scans.send(945)
     assert status["localization"] == "tracking" and status["initial_guess"] == "initialpose", status
-    check_pose(T, seq.pose(945), "scan from initialpose", status)
+    check_pose(T, truth, "scan from initialpose", status)
     assert time.monotonic() - t0 < 60.0
     text = log.read_text()
     assert "tracking lost" in text and "relocalize (relocalize service)" in text, text[-3000:]
