@@ -66,6 +66,24 @@ def save_checkpoint(
     return path
 
 
+def any_size(cfg: ModelConfig) -> bool:
+    """Whether a model runs at any N with the same weights (no token mixing: backbone "dgcnn")."""
+    return cfg.backbone == "dgcnn" and cfg.architecture == "genreg"
+
+
+def resized(model: nn.Module, num_points: int) -> nn.Module | None:
+    """The same generator (its weights copied) for clouds of `num_points` points, in eval mode on its
+    device; None when it runs at one N only (`any_size`)."""
+    cfg = model.config
+    if cfg.num_points == num_points:
+        return model
+    if not any_size(cfg):
+        return None
+    other = build_model(dataclasses.replace(cfg, num_points=num_points))
+    other.load_state_dict(model.state_dict())
+    return other.to(next(model.parameters()).device).eval()
+
+
 def load_checkpoint(
     name_or_path: str | os.PathLike, num_points: int | None = None, device: str = "cpu"
 ) -> tuple[nn.Module, dict[str, Any]]:
@@ -82,8 +100,8 @@ def load_checkpoint(
         cfg = from_dict(ModelConfig, blob["model_config"])
     except (ConfigError, KeyError, TypeError) as exc:
         raise CheckpointError(f"checkpoint {path} has an invalid model config: {exc}") from None
-    if num_points is not None and cfg.num_points != num_points and cfg.backbone == "dgcnn" and cfg.architecture == "genreg":
-        cfg = dataclasses.replace(cfg, num_points=num_points)  # no token mixing: the same weights at any N
+    if num_points is not None and cfg.num_points != num_points and any_size(cfg):
+        cfg = dataclasses.replace(cfg, num_points=num_points)
     if num_points is not None and cfg.num_points != num_points:
         raise CheckpointError(
             f"checkpoint {path} was built for N={cfg.num_points} points, but N={num_points} was requested"

@@ -7,13 +7,16 @@ import numpy as np
 import open3d as o3d
 import pytest
 import small_gicp
+import torch
 from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
+from genreg_core.checkpoint import load_checkpoint, resized
+from genreg_core.config import SCENE_MODEL
 from genreg_core.data.rgbd import RGBDSequence
 from genreg_core.errors import InvalidPointCloudError, NonFinitePointsError, TooFewPointsError
 from genreg_core.geometry import apply_transform, make_transform
-from genreg_core.localization import PLACE_POINTS, MapLocalizer
+from genreg_core.localization import PLACE_POINTS, SCREEN_MODEL_POINTS, MapLocalizer
 from genreg_core.metrics import transform_errors
 from genreg_core.preprocess import voxel_downsample
 
@@ -145,6 +148,16 @@ def test_tracking_in_a_map_larger_than_the_view_uses_a_local_map_and_moves_it(ki
         re, te = transform_errors(result.transformation, truth)
         assert re < 2.0 and te < 0.05 and result.confidence >= 0.5 and np.isnan(result.inlier_ratio), (re, te)
         assert not both._local.whole and np.linalg.norm(both._local.centre - truth[:3, 3]) < 3.0
+
+
+def test_places_are_screened_by_the_shipped_weights_at_256_points(kitchen):
+    _, loc = kitchen
+    reference, _ = load_checkpoint(SCENE_MODEL, num_points=SCREEN_MODEL_POINTS)
+    screener = loc._screen_model
+    assert screener.config == reference.config and screener.config.num_points == SCREEN_MODEL_POINTS
+    ours, theirs = screener.state_dict(), reference.state_dict()
+    assert ours.keys() == theirs.keys() and all(torch.equal(ours[k], theirs[k]) for k in ours)
+    assert resized(loc.registrar.model, loc.registrar.num_points) is loc.registrar.model
 
 
 def test_bad_input_raises_the_registrars_named_errors(kitchen):
