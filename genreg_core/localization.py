@@ -14,15 +14,16 @@ not much larger than the scan (extent below `whole_map_ratio` x the scan's) or i
 samples lie where the scan is; on redkitchen training maps 1.8-1.9x a scan's extent the whole map placed
 11 of 13 and 5 of 11 scans, the places 13 of 13 each) the map is cut into candidate places: the centres
 of occupied cells of a grid with spacing `place_spacing` x the scan's radius, each place the map points
-within `place_radius` x that radius of its centre (built on first use per radius, cached). The scan is
-registered against every place in batched `Registrar.register_many` calls, unrefined (GenReg is rotation
-invariant: no orientation is searched); the best `candidates` by confidence are verified against a crop
+within `place_radius` x that radius of its centre, at most `PLACE_POINTS` of them (built on first use per
+radius, kept in memory and, with `cache_dir`, on disk by the map's content hash). The scan is registered
+against every place in batched `Registrar.register_many` calls at `SCREEN_MODEL_POINTS` points (the same
+weights), unrefined (GenReg is rotation invariant: no orientation is searched); the best `candidates` by confidence are verified against a crop
 of the whole map around each (registration from the candidate's pose as the initial guess), and the most
 confident pose, the whole map's included, wins.
 
-With a guess (tracking), the scan is aligned by GICP from the guess against the whole map, prepared once
-at load (`refine.GICPTarget`: its covariances and k-d tree), with no network pass: about 10 ms on a
-kitchen map. Its confidence is the calibration's `TRACKING` model (fitted on training maps from guesses
+With a guess (tracking), the scan is aligned by GICP from the guess against the map around the guessed
+scan position (`LOCAL_RADIUS` scan radii; the whole map when it fits), prepared once per region
+(`refine.GICPTarget`: its covariances and k-d tree), with no network pass: 17-30 ms a scan held out. Its confidence is the calibration's `TRACKING` model (fitted on training maps from guesses
 near and far from the truth: `scripts/calibrate_confidence.py fit-tracking`) over the same verification
 features, the inlier ratio taken as 1 (no generated correspondences). When that probability is below
 `track_below` (a guess too far off), the map is cropped around the guessed scan position (`crop_radius` x
