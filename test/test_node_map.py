@@ -47,7 +47,7 @@ def fused_map(seq: RGBDSequence) -> np.ndarray:
     return np.asarray(o3d.geometry.PointCloud(o3d.utility.Vector3dVector(world)).voxel_down_sample(0.02).points)
 
 
-STREAM = [("redkitchen", i) for i in (805, 808, 811, 975, 977, 979)] + [("sun3d-1", 940)] * 2 + [
+STREAM = [("redkitchen", i) for i in (805, 806, 807, 975, 977, 979)] + [("sun3d-1", 940)] * 2 + [
     ("redkitchen", i) for i in (983, 985, 987, 945)]  # the recorded camera: (sequence, frame)
 
 
@@ -132,7 +132,7 @@ def test_scans_are_localised_tracked_relocalised_and_off_map_scans_publish_nothi
     assert status["localization"] == "global" and status["initial_guess"] == "none", status
     assert status["message"].startswith("global: published"), status
     check_pose(T, truth, "first scan", status)
-    for i in (808, 811):  # from the last accepted pose
+    for i in (806, 807):  # from the last accepted pose (a camera at its 30 Hz)
         status, T, truth = scans.send(i)
         assert status["localization"] == "tracking" and status["initial_guess"] == "last_result", status
         check_pose(T, truth, f"tracked scan {i}", status)
