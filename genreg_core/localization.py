@@ -23,8 +23,9 @@ confident pose, the whole map's included, wins.
 
 With a guess (tracking), the scan is aligned by GICP from the guess against the map around the guessed
 scan position (`LOCAL_RADIUS` scan radii; the whole map when it fits), prepared once per region
-(`refine.GICPTarget`: its covariances and k-d tree), with no network pass: 17-30 ms a scan held out. Its confidence is the calibration's `TRACKING` model (fitted on training maps from guesses
-near and far from the truth: `scripts/calibrate_confidence.py fit-tracking`) over the same verification
+(`refine.GICPTarget`: its covariances and k-d tree), with no network pass: 13-20 ms a scan held out.
+Its confidence is the calibration's `TRACKING` model (fitted on training maps from guesses near and far
+from the truth: `scripts/calibrate_confidence.py fit-tracking`) over the same verification
 features, the inlier ratio taken as 1 (no generated correspondences). When that probability is below
 `track_below` (a guess too far off), the map is cropped around the guessed scan position (`crop_radius` x
 the scan's radius) and GenReg registers the scan from the guess; the more probable pose wins. A
