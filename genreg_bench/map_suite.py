@@ -305,7 +305,8 @@ def run_map_suite(args: argparse.Namespace) -> int:
         load_s = None
         if "genreg" in wanted or TRACKING in wanted:
             methods, load_s = genreg_methods(case)
-        methods.update(baseline_methods(case, args.threads, args.map_voxel))
+        if set(wanted) - {"genreg", TRACKING}:  # the baselines' map tree only when they run
+            methods.update(baseline_methods(case, args.threads, args.map_voxel))
         meta["maps"].append({"key": case.key, "name": case.name, "points": len(case.map_xyz), "load_s": load_s})
         for key in (k for k in METHODS if k in wanted):
             recs = measure(case, key, methods[key], not args.no_progress)

@@ -281,7 +281,7 @@ class MapLocalizer:
                                     f"{self.voxel_size:.3g}; registration needs at least {reg.config.min_points}")
         centroid, radius, extent = self.scan_geometry(scan)
         if guess is not None:
-            tracked = self.track(scan, guess) if self.tracking_calibrated else None
+            tracked = self.track(scan, guess, (centroid, radius)) if self.tracking_calibrated else None
             if tracked is not None and tracked.confidence >= self.track_below:
                 return tracked
             searched = self.refined(scan, guess, apply_transform(guess, centroid[None])[0], radius)
@@ -319,14 +319,16 @@ class MapLocalizer:
                                GICPTarget(points, tree=index.tree, threads=self.threads))
         return self._local
 
-    def track(self, scan: np.ndarray, guess: np.ndarray) -> RegistrationResult | None:
-        """The voxelised scan aligned by GICP from `guess` (T_map_scan) against the whole map, verified as a
-        registration is (`confidence.FEATURES`, inlier ratio 1: no network pass; the result's `inlier_ratio`
-        and generated clouds are empty: NaN and (0, 3)). Its confidence is the `TRACKING` model's
+    def track(self, scan: np.ndarray, guess: np.ndarray, geometry: tuple[np.ndarray, float] | None = None
+              ) -> RegistrationResult | None:
+        """The voxelised scan aligned by GICP from `guess` (T_map_scan) against the local map around it
+        (`local`), verified as a registration is (`confidence.FEATURES`, inlier ratio 1: no network pass;
+        the result's `inlier_ratio` and generated clouds are empty: NaN and (0, 3)). `geometry`: the scan's
+        (centroid, radius) from `scan_geometry`, if known. Its confidence is the `TRACKING` model's
         probability, else (uncalibrated) the geometric mean of fitness and tight fitness; both times the
         degeneracy factor. None when the map holds too few points around the guess."""
         t0 = time.perf_counter()
-        centroid, radius, _ = self.scan_geometry(scan)
+        centroid, radius = geometry or self.scan_geometry(scan)[:2]
         local = self.local(apply_transform(guess, centroid[None])[0], radius)
         if local is None:
             return None
@@ -338,9 +340,9 @@ class MapLocalizer:
         t1 = time.perf_counter()
         moved = apply_transform(T, sample)
         distance = FITNESS_SPACINGS * voxel
-        shares = overlap_shares(sample, index, T, np.multiply(SPACINGS, voxel))
-        fitness, tight = (float(x) for x in overlap_shares(sample, index, T, np.array([distance, TIGHT_SPACINGS * voxel])))
-        _, squared = index.nearest(moved)
+        within = overlap_shares(sample, index, T, np.multiply([*SPACINGS, FITNESS_SPACINGS, TIGHT_SPACINGS], voxel))
+        shares, fitness, tight = within[:len(SPACINGS)], float(within[-2]), float(within[-1])
+        _, squared = index.nearest(moved)  # the query overlap_shares asked, answered from memory
         close = squared < distance * distance
         unconstrained, constraint = unconstrained_directions(moved, index, distance)
         covariance = pose_covariance(moved, index, T[:3, 3], distance, COVARIANCE_INFLATION,

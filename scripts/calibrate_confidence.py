@@ -54,6 +54,7 @@ from genreg_core.confidence import FEATURES, ConfidenceModel, Logistic, calibrat
 from genreg_core.config import SCENE_MODEL, SCENE_REGISTRATION, RegistrationConfig
 from genreg_core.data import FramePairs, ModelNetPairs, RGBDSequence, load_modelnet40
 from genreg_core.data.modelnet40 import rpmnet_crop_pair
+from genreg_core.errors import CheckpointError
 from genreg_core.metrics import transform_errors
 from genreg_core.registration import Registrar
 
@@ -162,10 +163,37 @@ def reliability_diagram(p: np.ndarray, y: np.ndarray, title: str, path: Path) ->
     plt.close(fig)
 
 
-def fit(model: str, per_set: int) -> None:
+def fitted_logistic(X: np.ndarray, y: np.ndarray) -> tuple[Logistic, np.ndarray]:
+    """A logistic regression (scikit-learn) of success on the features, and its 5-fold cross-validated
+    probabilities of the same rows."""
     from sklearn.linear_model import LogisticRegression
     from sklearn.model_selection import StratifiedKFold, cross_val_predict
 
+    regression = LogisticRegression(C=1.0, max_iter=5000)
+    held = cross_val_predict(regression, X, y, cv=StratifiedKFold(5, shuffle=True, random_state=0),
+                             method="predict_proba")[:, 1]
+    regression.fit(X, y)
+    return Logistic(tuple(float(c) for c in regression.coef_[0]), float(regression.intercept_[0])), held
+
+
+def save_calibration(model: str, fitted: dict[str, Logistic], description: str) -> Path:
+    """Write the model's calibration with `fitted` (refinement -> model), keeping the shipped calibration's
+    other models (`fit` and `fit-tracking` fit different ones) when it belongs to this checkpoint.
+    `fitted_on` holds one "<models>: <training results>" part per fit."""
+    checkpoint = resolve_checkpoint(model)
+    try:
+        shipped = ConfidenceModel.load(calibration_path(checkpoint), checkpoint)
+    except CheckpointError:  # none yet, or another checkpoint's
+        shipped = None
+    kept = {} if shipped is None else {k: v for k, v in shipped.by_refinement.items() if k not in fitted}
+    parts = [] if shipped is None else [part for part in shipped.fitted_on.split("; ")
+                                         if set(part.split(": ")[0].split(", ")) <= set(kept)]
+    calibration = ConfidenceModel({**kept, **fitted}, success(model)[0], file_sha256(checkpoint),
+                                  "; ".join([*parts, f"{', '.join(fitted)}: {description}"]), time.strftime("%Y-%m-%d"))
+    return calibration.save(calibration_path(checkpoint))
+
+
+def fit(model: str, per_set: int) -> None:
     # the shipped calibration, if any, chooses among PDSAC's modes as it will in use; its features are refitted
     rows = list(register(model, training_sets(model, per_set), calibrated=True))
     rule, _ = success(model)
@@ -175,21 +203,14 @@ def fit(model: str, per_set: int) -> None:
         mine = np.array([r[1] == method for r in rows])
         X = np.stack([r[2] for r, m in zip(rows, mine, strict=True) if m])
         y = np.array([r[4] for r, m in zip(rows, mine, strict=True) if m])
-        regression = LogisticRegression(C=1.0, max_iter=5000)
-        held[mine] = cross_val_predict(regression, X, y, cv=StratifiedKFold(5, shuffle=True, random_state=0),
-                                       method="predict_proba")[:, 1]
-        regression.fit(X, y)
-        fitted[method] = Logistic(tuple(float(c) for c in regression.coef_[0]), float(regression.intercept_[0]))
+        fitted[method], held[mine] = fitted_logistic(X, y)
         print(f"  {method:16s} {'all':28s}", summary(held[mine], y))
         for name in dict.fromkeys(r[0] for r in rows):
             mask = mine & np.array([r[0] == name for r in rows])
             print(f"  {method:16s} {name:28s}", summary(held[mask], np.array([r[4] for r in rows])[mask]))
-    checkpoint = resolve_checkpoint(model)
     y_all = np.array([r[4] for r in rows])
     sets = ", ".join(dict.fromkeys(r[0] for r in rows))
-    calibration = ConfidenceModel(fitted, rule, file_sha256(checkpoint), f"{len(rows)} training results: {sets}",
-                                  time.strftime("%Y-%m-%d"))
-    print("wrote", calibration.save(calibration_path(checkpoint)))
+    print("wrote", save_calibration(model, fitted, f"{len(rows)} training results: {sets}"))
     figure = REPO / "docs" / f"reliability_{model}.png"
     reliability_diagram(held, y_all, f"{model}: training pairs, 5-fold cross-validated ({rule})", figure)
     print("wrote", figure)
@@ -237,30 +258,19 @@ def tracking_rows(per_map: int, seed: int = 2027) -> Iterator[tuple[str, np.ndar
 
 
 def fit_tracking(model: str, per_map: int) -> None:
-    from sklearn.linear_model import LogisticRegression
-    from sklearn.model_selection import StratifiedKFold, cross_val_predict
-
     from genreg_core.localization import TRACKING
 
     if model != SCENE_MODEL:
         raise SystemExit(f"fit-tracking: map tracking is calibrated for the scene model {SCENE_MODEL}, not {model}")
     rows = list(tracking_rows(per_map))
     X, y = np.stack([r[1] for r in rows]), np.array([r[2] for r in rows])
-    regression = LogisticRegression(C=1.0, max_iter=5000)
-    held = cross_val_predict(regression, X, y, cv=StratifiedKFold(5, shuffle=True, random_state=0), method="predict_proba")[:, 1]
-    regression.fit(X, y)
+    logistic, held = fitted_logistic(X, y)
     print(f"{model} {TRACKING}: {len(rows)} training results, 5-fold cross-validated:")
     print(f"  {'all':28s}", summary(held, y))
     for name in dict.fromkeys(r[0] for r in rows):
         mask = np.array([r[0] == name for r in rows])
         print(f"  {name:28s}", summary(held[mask], y[mask]))
-    checkpoint = resolve_checkpoint(model)
-    shipped = ConfidenceModel.load(calibration_path(checkpoint), checkpoint)
-    fitted = {**{k: v for k, v in shipped.by_refinement.items() if k != TRACKING},
-              TRACKING: Logistic(tuple(float(c) for c in regression.coef_[0]), float(regression.intercept_[0]))}
-    fitted_on = shipped.fitted_on.split("; ")[0] + f"; {TRACKING}: {len(rows)} tracking results on redkitchen 0-799 maps"
-    print("wrote", replace(shipped, by_refinement=fitted, fitted_on=fitted_on,
-                           date=time.strftime("%Y-%m-%d")).save(calibration_path(checkpoint)))
+    print("wrote", save_calibration(model, {TRACKING: logistic}, f"{len(rows)} tracking results on redkitchen 0-799 maps"))
     figure = REPO / "docs" / f"reliability_{model}_tracking.png"
     reliability_diagram(held, y, f"{model} map tracking: training maps, 5-fold cross-validated ({SCENE_RULE})", figure)
     print("wrote", figure)
