@@ -231,6 +231,11 @@ class RefineConfig:
                                     "guess (no guess given), m; 0: auto, 50 % of the robust extent.", low=0.0,
                                     high=1e4)
     guard_iterations: int = setting(50, "ICP iterations from the initial guess.", low=1, high=1000)
+    fine_fraction: float = setting(1.0, "After the ICP iterations, `fine_iterations` more at this fraction of the "
+                                   "correspondence distance: the wide distance finds the basin, the tight one "
+                                   "keeps points outside the overlap from pulling the pose (1: one stage).",
+                                   low=0.01, high=1.0)
+    fine_iterations: int = setting(10, "ICP iterations of the tight stage (`fine_fraction` < 1).", low=1, high=1000)
 
     def __post_init__(self) -> None:
         check_ranges(self, "refine.")
@@ -283,7 +288,8 @@ class RegistrationConfig:
 # The scene profile (depth cameras, rooms, LiDAR): the scene model with GICP refinement and the scene PDSAC
 # settings, best on real training pairs (MODEL_CARD.md). The node's scene params file, the benchmarks' scene
 # datasets and the calibration scripts all start from it.
-SCENE_REGISTRATION = RegistrationConfig(pdsac=SCENE_PDSAC, refine=RefineConfig(method="gicp", max_iterations=20))
+SCENE_REGISTRATION = RegistrationConfig(pdsac=SCENE_PDSAC, refine=RefineConfig(method="gicp", max_iterations=20,
+                                                                                 fine_fraction=0.25))
 
 
 T = TypeVar("T")

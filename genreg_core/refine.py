@@ -7,8 +7,6 @@ units of the points given.
 
 from __future__ import annotations
 
-from dataclasses import replace
-
 import numpy as np
 import open3d as o3d
 import small_gicp
@@ -54,6 +52,9 @@ def icp(
     neighbourhoods). Both clouds are voxel-downsampled first when `voxel_size` > 0. A `TargetIndex` target
     is its points; GICP also searches its k-d tree instead of building another.
     """
+    if method == "gicp" and isinstance(target, TargetIndex) and voxel_size == 0:
+        return gicp_target(target).align(np.asarray(source, dtype=np.float64), init, max_distance=max_distance,
+                                         max_iterations=max_iterations)
     tree, target = (target.tree, target.points) if isinstance(target, TargetIndex) else (None, target)
     if method == "gicp":
         return gicp(np.asarray(source, dtype=np.float64), np.asarray(target, dtype=np.float64), init,
@@ -102,6 +103,14 @@ class GICPTarget:
         return np.asarray(result.T_target_source).copy()
 
 
+def gicp_target(index: TargetIndex) -> GICPTarget:
+    """An index's points prepared for GICP (covariances, its k-d tree), once per index: every candidate
+    pose of a pair is refined against the same target."""
+    if index.gicp is None:
+        index.gicp = GICPTarget(index.points, tree=index.tree)
+    return index.gicp
+
+
 def gicp(source: np.ndarray, target: np.ndarray, init: np.ndarray | None = None, *, max_distance: float,
          max_iterations: int, voxel_size: float = 0.0, threads: int = 1, neighbours: int = 10,
          target_tree: small_gicp.KdTree | None = None) -> np.ndarray:
@@ -121,14 +130,26 @@ def gicp(source: np.ndarray, target: np.ndarray, init: np.ndarray | None = None,
 
 def refine(src: np.ndarray, tgt: np.ndarray | o3d.geometry.PointCloud, T_init: np.ndarray, cfg: RefineConfig
            ) -> np.ndarray:
-    """The pipeline's refine stage: `cfg.max_iterations` ICP iterations of `cfg.method` from T_init (`tgt`
-    may be an Open3D cloud with normals for point-to-plane, `PreparedPair.plane_target`)."""
-    return icp(src, tgt, T_init, method=cfg.method, max_distance=cfg.max_correspondence_distance,
-               max_iterations=cfg.max_iterations)
+    """The pipeline's refine stage: `cfg.max_iterations` ICP iterations of `cfg.method` from T_init, then,
+    with `cfg.fine_fraction` < 1, `cfg.fine_iterations` more at that fraction of the distance (`tgt` may be
+    an Open3D cloud with normals for point-to-plane, `PreparedPair.plane_target`)."""
+    T = icp(src, tgt, T_init, method=cfg.method, max_distance=cfg.max_correspondence_distance,
+            max_iterations=cfg.max_iterations)
+    return tighten(src, tgt, T, cfg)
+
+
+def tighten(src: np.ndarray, tgt: np.ndarray | o3d.geometry.PointCloud, T: np.ndarray, cfg: RefineConfig
+            ) -> np.ndarray:
+    """The refinement's tight stage from T: `cfg.fine_iterations` ICP iterations at `cfg.fine_fraction` of
+    its correspondence distance (T itself when the fraction is 1)."""
+    if cfg.fine_fraction >= 1.0:
+        return T
+    return icp(src, tgt, T, method=cfg.method, max_distance=cfg.fine_fraction * cfg.max_correspondence_distance,
+               max_iterations=cfg.fine_iterations)
 
 
 def guard_icp(src: np.ndarray, tgt: np.ndarray | o3d.geometry.PointCloud, cfg: RefineConfig) -> np.ndarray:
     """The refinement guard's candidate: ICP from identity with the guard's wide cut-off and iterations
     (no initial guess given)."""
-    guard = replace(cfg, max_correspondence_distance=cfg.guard_distance, max_iterations=cfg.guard_iterations)
-    return refine(src, tgt, np.eye(4), guard)
+    T = icp(src, tgt, np.eye(4), method=cfg.method, max_distance=cfg.guard_distance, max_iterations=cfg.guard_iterations)
+    return tighten(src, tgt, T, cfg)

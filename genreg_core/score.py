@@ -57,6 +57,7 @@ class TargetIndex:
         self._normals = np.zeros_like(self.points)
         self._has_normal = np.zeros(len(self.points), dtype=bool)
         self._queries: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []  # the last few `nearest` calls
+        self.gicp: object | None = None  # the points prepared for GICP, on first use (`refine.gicp_target`)
 
     @classmethod
     def of(cls, target: np.ndarray | TargetIndex) -> TargetIndex:

@@ -92,7 +92,8 @@ def test_scene_file_registers_with_the_cores_scene_preset():
     scene = params.to_config({name: params.to_ros(params.BY_NAME[name], v) for name, v in defaults("genreg.yaml").items()})
     assert scene.registration_config() == SCENE_REGISTRATION
     assert scene.model.checkpoint == "7scenes" and scene.workers == 2
-    assert set(SCENE_OVERRIDES) == {"model.checkpoint", "workers", "refine.method", "pdsac.sample_size"}
+    assert set(SCENE_OVERRIDES) == {"model.checkpoint", "workers", "refine.method", "refine.fine_fraction",
+                                    "pdsac.sample_size"}
 
 
 def test_registration_scalars_are_the_cores_scalar_settings():
