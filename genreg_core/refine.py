@@ -44,8 +44,10 @@ def icp(
     max_iterations: int,
     voxel_size: float = 0.0,
     normal_radius: float | None = None,
+    fine: tuple[float, int] | None = None,
 ) -> np.ndarray:
-    """ICP from `init` (identity if None): the 4x4 target_from_source it converges to.
+    """ICP from `init` (identity if None): the 4x4 target_from_source it converges to; with `fine` =
+    (distance, iterations), that many more iterations from there at that distance (the clouds prepared once).
 
     `method`: Open3D's "point_to_point" or "point_to_plane" (target normals by `estimate_normals`, unless
     the target cloud already has them), or small_gicp's "gicp" (arrays only; covariances from its default
@@ -54,11 +56,14 @@ def icp(
     """
     if method == "gicp" and isinstance(target, TargetIndex) and voxel_size == 0:
         return gicp_target(target).align(np.asarray(source, dtype=np.float64), init, max_distance=max_distance,
-                                         max_iterations=max_iterations)
+                                         max_iterations=max_iterations, fine=fine)
     tree, target = (target.tree, target.points) if isinstance(target, TargetIndex) else (None, target)
     if method == "gicp":
-        return gicp(np.asarray(source, dtype=np.float64), np.asarray(target, dtype=np.float64), init,
-                    max_distance=max_distance, max_iterations=max_iterations, voxel_size=voxel_size, target_tree=tree)
+        T = gicp(np.asarray(source, dtype=np.float64), np.asarray(target, dtype=np.float64), init,
+                 max_distance=max_distance, max_iterations=max_iterations, voxel_size=voxel_size, target_tree=tree)
+        return T if fine is None else gicp(np.asarray(source, dtype=np.float64), np.asarray(target, dtype=np.float64),
+                                           T, max_distance=fine[0], max_iterations=fine[1], voxel_size=voxel_size,
+                                           target_tree=tree)
     reg = o3d.pipelines.registration
     src = source if isinstance(source, o3d.geometry.PointCloud) else o3d_cloud(source)
     tgt = target if isinstance(target, o3d.geometry.PointCloud) else o3d_cloud(target)
@@ -71,11 +76,11 @@ def icp(
         estimation = reg.TransformationEstimationPointToPoint()
     else:
         raise ValueError(f"icp method must be 'point_to_point' or 'point_to_plane', got {method!r}")
-    result = reg.registration_icp(
-        src, tgt, max_distance, np.eye(4) if init is None else init, estimation,
-        reg.ICPConvergenceCriteria(max_iteration=max_iterations),
-    )
-    return np.asarray(result.transformation).copy()
+    T = np.eye(4) if init is None else init
+    for distance, iterations in [(max_distance, max_iterations), *([] if fine is None else [fine])]:
+        T = reg.registration_icp(src, tgt, distance, T, estimation,
+                                 reg.ICPConvergenceCriteria(max_iteration=iterations)).transformation
+    return np.asarray(T).copy()
 
 
 class GICPTarget:
@@ -91,16 +96,18 @@ class GICPTarget:
         small_gicp.estimate_covariances(self.cloud, self.tree, num_neighbors=neighbours, num_threads=threads)
 
     def align(self, source: np.ndarray, init: np.ndarray | None = None, *, max_distance: float, max_iterations: int,
-              threads: int = 1) -> np.ndarray:
+              threads: int = 1, fine: tuple[float, int] | None = None) -> np.ndarray:
         """GICP of `source` (covariances from as many neighbours as the target's) from `init`: the 4x4
-        target_from_source."""
+        target_from_source; with `fine` = (distance, iterations), that many more at that distance."""
         cloud = small_gicp.PointCloud(np.ascontiguousarray(source, dtype=np.float64))
         tree = small_gicp.KdTree(cloud, num_threads=threads)
         small_gicp.estimate_covariances(cloud, tree, num_neighbors=self.neighbours, num_threads=threads)
-        result = small_gicp.align(self.cloud, cloud, self.tree, np.eye(4) if init is None else np.asarray(init, float),
-                                  registration_type="GICP", max_correspondence_distance=max_distance,
-                                  num_threads=threads, max_iterations=max_iterations)
-        return np.asarray(result.T_target_source).copy()
+        T = np.eye(4) if init is None else np.asarray(init, float)
+        for distance, iterations in [(max_distance, max_iterations), *([] if fine is None else [fine])]:
+            T = small_gicp.align(self.cloud, cloud, self.tree, T, registration_type="GICP",
+                                 max_correspondence_distance=distance, num_threads=threads,
+                                 max_iterations=iterations).T_target_source
+        return np.asarray(T).copy()
 
 
 def gicp_target(index: TargetIndex) -> GICPTarget:
@@ -130,26 +137,22 @@ def gicp(source: np.ndarray, target: np.ndarray, init: np.ndarray | None = None,
 
 def refine(src: np.ndarray, tgt: np.ndarray | o3d.geometry.PointCloud, T_init: np.ndarray, cfg: RefineConfig
            ) -> np.ndarray:
-    """The pipeline's refine stage: `cfg.max_iterations` ICP iterations of `cfg.method` from T_init, then,
-    with `cfg.fine_fraction` < 1, `cfg.fine_iterations` more at that fraction of the distance (`tgt` may be
-    an Open3D cloud with normals for point-to-plane, `PreparedPair.plane_target`)."""
-    T = icp(src, tgt, T_init, method=cfg.method, max_distance=cfg.max_correspondence_distance,
-            max_iterations=cfg.max_iterations)
-    return tighten(src, tgt, T, cfg)
+    """The pipeline's refine stage: `cfg.max_iterations` ICP iterations of `cfg.method` from T_init, then its
+    tight stage (`tight_stage`) (`tgt` may be an Open3D cloud with normals for point-to-plane,
+    `PreparedPair.plane_target`)."""
+    return icp(src, tgt, T_init, method=cfg.method, max_distance=cfg.max_correspondence_distance,
+               max_iterations=cfg.max_iterations, fine=tight_stage(cfg))
 
 
-def tighten(src: np.ndarray, tgt: np.ndarray | o3d.geometry.PointCloud, T: np.ndarray, cfg: RefineConfig
-            ) -> np.ndarray:
-    """The refinement's tight stage from T: `cfg.fine_iterations` ICP iterations at `cfg.fine_fraction` of
-    its correspondence distance (T itself when the fraction is 1)."""
-    if cfg.fine_fraction >= 1.0:
-        return T
-    return icp(src, tgt, T, method=cfg.method, max_distance=cfg.fine_fraction * cfg.max_correspondence_distance,
-               max_iterations=cfg.fine_iterations)
+def tight_stage(cfg: RefineConfig) -> tuple[float, int] | None:
+    """(distance, iterations) of the refinement's tight stage, `cfg.fine_iterations` at `cfg.fine_fraction` of
+    its correspondence distance, or None when the fraction is 1."""
+    return None if cfg.fine_fraction >= 1.0 else (cfg.fine_fraction * cfg.max_correspondence_distance,
+                                                  cfg.fine_iterations)
 
 
 def guard_icp(src: np.ndarray, tgt: np.ndarray | o3d.geometry.PointCloud, cfg: RefineConfig) -> np.ndarray:
     """The refinement guard's candidate: ICP from identity with the guard's wide cut-off and iterations
     (no initial guess given)."""
-    T = icp(src, tgt, np.eye(4), method=cfg.method, max_distance=cfg.guard_distance, max_iterations=cfg.guard_iterations)
-    return tighten(src, tgt, T, cfg)
+    return icp(src, tgt, np.eye(4), method=cfg.method, max_distance=cfg.guard_distance,
+               max_iterations=cfg.guard_iterations, fine=tight_stage(cfg))

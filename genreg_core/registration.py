@@ -193,7 +193,7 @@ def verified_mode(check: Verifier, target: object, T_best: np.ndarray, start: np
     refining = refine_cfg.method != "none"
     dense_src = check.pair.dense_src
     coarse_src = dense_src[:: max(1, len(dense_src) // COARSE_POINTS)]
-    coarse_cfg = replace(refine_cfg, max_iterations=min(COARSE_ITERATIONS, refine_cfg.max_iterations))
+    coarse_cfg = replace(refine_cfg, max_iterations=min(COARSE_ITERATIONS, refine_cfg.max_iterations), fine_fraction=1.0)
     distinct = [M for k, M in enumerate(modes) if not any(np.array_equal(M, m) for m in [start, *modes[:k]])]
     coarse = [refine(coarse_src, target, M, coarse_cfg) if refining else M for M in distinct]
     scores = [check.probability(T) for T in coarse]

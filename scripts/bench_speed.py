@@ -9,13 +9,14 @@ OMP_WAIT_POLICY=PASSIVE. Every figure is a median in ms, batch 1 unless stated; 
 own downsampling, normals and features.
 - Real pair: 7-Scenes redkitchen frames 810 -> 800 at full resolution (~270k points each, metres). The API
   with the shipped `7scenes` model and the scene preset's PDSAC (`config.SCENE_REGISTRATION`), without
-  refinement and with point-to-plane refinement (the speed goals' two settings), split into its
+  refinement, with point-to-plane refinement and with the preset's GICP (the speed goals' settings), split into its
   stages (`RegistrationResult.timings`), beside Open3D point-to-plane ICP from identity (2.5 cm voxels),
   small_gicp GICP (2.5 cm voxels) and FPFH + RANSAC + ICP (5 cm feature voxels).
 - Objects: the shipped object models at N=512 on ModelNet40 unseen-category pairs (unit box), beside FPFH +
   RANSAC on the same pairs: `modelnet40_dgcnn` (the default object model since commit 7f8b38a, 2026-12-02),
   `modelnet40_partial` (partial overlap) and `modelnet40` (the mixer model, the default before).
-- The speed goals (since commit 1cce558, 2026-11-24): API / point-to-plane ICP <= 0.25 without refinement and <= 0.35 with it, object
+- The speed goals (since commit 1cce558, 2026-11-24): API / point-to-plane ICP <= 0.25 without refinement and <= 0.35 with it
+  (point-to-plane, or the scene preset's GICP), object
   model / FPFH + RANSAC <= 0.4, network + PDSAC <= 10 ms at N=512, preprocess + postprocess <= 4 ms on
   the real pair.
 - Throughput: `register_many`, pairs per second at batch 1, 8 and 16 (object model on the ModelNet40 pairs,
@@ -125,6 +126,7 @@ def scene_figures(args: argparse.Namespace, threads: int) -> Figures:
     scene = replace(SCENE_REGISTRATION, seed=0)
     plain = Registrar.from_checkpoint(args.scene_checkpoint, replace(scene, refine=RefineConfig()))
     p2plane = Registrar(plain.model, replace(scene, refine=RefineConfig(method="point_to_plane")))
+    gicp = Registrar(plain.model, scene, plain.calibration)  # the scene preset: GICP and its tight stage
     params = replace(BaselineParams.metric_scene(threads), icp_voxel_size=SCENE_VOXEL, gicp_voxel_size=SCENE_VOXEL)
     baseline_pairs = [pair] * args.baseline_repeats
     return {
@@ -132,6 +134,7 @@ def scene_figures(args: argparse.Namespace, threads: int) -> Figures:
         "points": [len(pair[0]), len(pair[1])],
         "api": api_ms(plain, [pair] * args.repeats),
         "api_p2plane": api_ms(p2plane, [pair] * args.repeats),
+        "api_gicp": api_ms(gicp, [pair] * args.repeats),
         "icp_p2plane": baseline_ms(icp_point_to_plane, baseline_pairs, params),
         "small_gicp": baseline_ms(small_gicp_gicp, baseline_pairs, params),
         "fpfh_ransac_icp": baseline_ms(fpfh_ransac_icp, baseline_pairs, params),
@@ -229,13 +232,14 @@ def print_scene(results: dict[int, Figures]) -> None:
         ["API, no refinement", *(s["api"]["wall"] for s in scenes), *(stage_split(s["api"]) for s in scenes)],
         ["API + point-to-plane", *(s["api_p2plane"]["wall"] for s in scenes),
          *(stage_split(s["api_p2plane"]) for s in scenes)],
+        ["API + GICP (scene preset)", *(s["api_gicp"]["wall"] for s in scenes), *(stage_split(s["api_gicp"]) for s in scenes)],
         ["Open3D p2plane ICP (2.5 cm voxels)", *(s["icp_p2plane"] for s in scenes), *("" for _ in scenes)],
         ["small_gicp GICP (2.5 cm voxels)", *(s["small_gicp"] for s in scenes), *("" for _ in scenes)],
         ["FPFH + RANSAC + ICP (5 cm)", *(s["fpfh_ransac_icp"] for s in scenes), *("" for _ in scenes)],
     ]
     print(table(["method", *(f"{t} thr ms" for t in threads), *(f"{t} thr stages" for t in threads)], rows))
     for t, s in zip(threads, scenes, strict=True):
-        for key, label in (("api", "no refinement"), ("api_p2plane", "point-to-plane")):
+        for key, label in (("api", "no refinement"), ("api_p2plane", "point-to-plane"), ("api_gicp", "GICP")):
             total = s[key]["total"]
             shares = ", ".join(f"{stage} {100 * s[key].get(stage, 0.0) / total:.0f} %" for stage in STAGES)
             print(f"stage shares, {t} thread(s), {label}: {shares}")
@@ -266,6 +270,7 @@ def goals(figures: Figures) -> list[tuple[str, float, float]]:
     rows = [
         ("API / p2plane ICP, no refinement", scene["api"]["wall"] / scene["icp_p2plane"], 0.25),
         ("API + p2plane / p2plane ICP", scene["api_p2plane"]["wall"] / scene["icp_p2plane"], 0.35),
+        ("API + GICP (scene preset) / p2plane ICP", scene["api_gicp"]["wall"] / scene["icp_p2plane"], 0.35),
     ]
     for name in object_models({0: figures}):
         rows.append((f"{name} / FPFH + RANSAC", objects[name]["wall"] / objects["fpfh_ransac"], 0.4))
