@@ -216,10 +216,11 @@ def test_point_to_plane_target_carries_open3d_knn_normals_and_refines_identicall
                                refine(p.dense_src, p.dense_tgt, start, cfg), atol=1e-9)
 
 
-def test_gicp_on_the_scores_index_searches_its_tree_and_refines_identically():
-    """GICP's target as `PreparedPair.target_index` (its k-d tree shared with the scores, one tree per target)
-    gives bit for bit the transform GICP gives on the bare array with a tree of its own, and it recovers the
-    known motion."""
+@pytest.mark.parametrize("fine_fraction", [1.0, 0.25])
+def test_gicp_on_the_scores_index_searches_its_tree_and_refines_identically(fine_fraction):
+    """GICP's target as `PreparedPair.target_index` (its k-d tree shared with the scores, its covariances
+    prepared once for every candidate, both stages on one prepared source) gives bit for bit the transform
+    GICP gives on the bare array, prepared afresh for each stage, and it recovers the known motion."""
     from genreg_core.config import RefineConfig, RegistrationConfig
     from genreg_core.prepare import model_frame_config, prepare_pair
     from genreg_core.refine import refine
@@ -228,8 +229,12 @@ def test_gicp_on_the_scores_index_searches_its_tree_and_refines_identically():
     truth = random_transform(np.random.default_rng(4), 3.0, 0.02)
     p = prepare_pair(src, apply_transform(truth, _surface(6000, seed=5)), None, num_points=256, refine_points=3000,
                      min_points=16, seed=0)
-    cfg = model_frame_config(RegistrationConfig(refine=RefineConfig(method="gicp")), p.scale).refine
+    refine_cfg = RefineConfig(method="gicp", fine_fraction=fine_fraction)
+    cfg = model_frame_config(RegistrationConfig(refine=refine_cfg), p.scale).refine
     shared, own = refine(p.dense_src, p.target_index, np.eye(4), cfg), refine(p.dense_src, p.dense_tgt, np.eye(4), cfg)
     assert np.array_equal(shared, own)
+    prepared = p.target_index.gicp
+    assert np.array_equal(refine(p.dense_src, p.target_index, np.eye(4), cfg), shared)
+    assert p.target_index.gicp is prepared  # the second candidate reused the target's covariances
     re, te = transform_errors(p.to_input_units(shared), truth)
     assert re < 0.5 and te < 0.01

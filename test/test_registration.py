@@ -353,3 +353,34 @@ def test_opt_in_fallback_rescues_a_wrong_estimate_beyond_the_guards_reach():
     assert transform_errors(off.transformation, T)[0] > 20.0 and off.start != "fallback"  # control
     re, te = transform_errors(on.transformation, T)
     assert on.start == "fallback" and re < 1.0 and te < 0.02, (re, te)
+
+
+def test_the_tight_stage_keeps_points_outside_the_overlap_from_pulling_the_pose():
+    """A room corner whose target floor has a pit 8 cm deep that the source does not see (an object moved):
+    at the wide correspondence distance (10 cm here) the source's floor over the pit is drawn down and the
+    pose sinks; the scene profile's tight stage (a quarter of the distance) lets go of those points and
+    returns to the known motion, from the true pose and from a start 2 deg / 2 cm off."""
+    from genreg_core.config import SCENE_REGISTRATION
+    from genreg_core.prepare import model_frame_config, prepare_pair
+    from genreg_core.refine import refine
+
+    def room(rng: np.random.Generator, n: int, pit: float) -> np.ndarray:
+        floor = rng.uniform([0, 0, 0], [2, 2, 0], (n, 3))
+        floor[(np.abs(floor[:, 0] - 1) < 0.3) & (np.abs(floor[:, 1] - 1) < 0.3), 2] -= pit
+        walls = [rng.uniform([0, 0, 0], [0, 2, 1], (n // 2, 3)), rng.uniform([0, 0, 0], [2, 0, 1], (n // 2, 3))]
+        return np.concatenate([floor, *walls]) + rng.normal(0, 0.002, (2 * n, 3))
+
+    rng = np.random.default_rng(0)
+    truth = random_transform(np.random.default_rng(1), 20.0, 0.3)
+    p = prepare_pair(room(rng, 6000, 0.0), apply_transform(truth, room(rng, 6000, 0.08)), None, num_points=512,
+                     refine_points=5000, seed=0)
+    cfg = model_frame_config(SCENE_REGISTRATION, p.scale).refine
+    assert cfg.fine_fraction == 0.25 and 0.05 < cfg.max_correspondence_distance * p.scale < 0.15
+    off = random_transform(np.random.default_rng(2), 2.0, 0.0) @ truth
+    off[:3, 3] += [0.02, 0.0, 0.0]
+    for start in (truth, off):
+        one = refine(p.dense_src, p.target_index, p.to_normalized(start), dataclasses.replace(cfg, fine_fraction=1.0))
+        tight = refine(p.dense_src, p.target_index, p.to_normalized(start), cfg)
+        assert transform_errors(p.to_input_units(one), truth)[1] > 0.003  # control: the wide stage sinks
+        re, te = transform_errors(p.to_input_units(tight), truth)
+        assert re < 0.05 and te < 0.0015, (re, te)
