@@ -23,7 +23,7 @@ confident pose, the whole map's included, wins.
 
 With a guess (tracking), the scan is aligned by GICP from the guess against the map around the guessed
 scan position (`LOCAL_RADIUS` scan radii; the whole map when it fits), prepared once per region
-(`refine.GICPTarget`: its covariances and k-d tree), with no network pass: 13-20 ms a scan held out.
+(`refine.gicp_target`: its covariances and k-d tree), with no network pass: 13-20 ms a scan held out.
 Its confidence is the calibration's `TRACKING` model (fitted on training maps from guesses near and far
 from the truth: `scripts/calibrate_confidence.py fit-tracking`) over the same verification
 features, the inlier ratio taken as 1 (no generated correspondences). When that probability is below
@@ -56,7 +56,7 @@ from genreg_core.errors import ConfigError, TooFewPointsError
 from genreg_core.geometry import apply_transform
 from genreg_core.prepare import check_transform, robust_extent, validate_cloud
 from genreg_core.preprocess import voxel_downsample
-from genreg_core.refine import GICPTarget
+from genreg_core.refine import gicp_target
 from genreg_core.registration import Registrar, RegistrationResult
 from genreg_core.score import (
     COVARIANCE_FLOOR_M,
@@ -141,13 +141,13 @@ def write_places(path: Path, places: list[np.ndarray]) -> None:
 
 @dataclass(frozen=True)
 class LocalMap:
-    """Tracking's part of the map: the map within a radius of `centre`, prepared for GICP and scoring."""
+    """Tracking's part of the map: the map within a radius of `centre`, indexed for scoring and GICP
+    (`refine.gicp_target`)."""
 
     centre: np.ndarray  # (3,)
     radius: float
     whole: bool  # it holds the whole map (never rebuilt)
     index: TargetIndex
-    gicp: GICPTarget
 
 
 class MapLocalizer:
@@ -315,8 +315,8 @@ class MapLocalizer:
             return None
         points = self.map[rows]
         index = TargetIndex(points, self.threads, spacing=self.voxel_size)
-        self._local = LocalMap(np.array(centre, dtype=np.float64), radius, len(rows) == len(self.map), index,
-                               GICPTarget(points, tree=index.tree, threads=self.threads))
+        gicp_target(index)  # prepared with the region, not on the first scan
+        self._local = LocalMap(np.array(centre, dtype=np.float64), radius, len(rows) == len(self.map), index)
         return self._local
 
     def track(self, scan: np.ndarray, guess: np.ndarray, geometry: tuple[np.ndarray, float] | None = None
@@ -335,8 +335,8 @@ class MapLocalizer:
         rows = np.random.default_rng(self.registrar.config.seed).permutation(len(scan))[:TRACK_POINTS]
         sample = scan[np.sort(rows)]
         voxel, index = self.voxel_size, local.index
-        T = local.gicp.align(sample, guess, max_distance=TRACK_DISTANCE * voxel, max_iterations=TRACK_ITERATIONS,
-                             threads=self.threads)
+        T = gicp_target(index).align(sample, guess, max_distance=TRACK_DISTANCE * voxel,
+                                     max_iterations=TRACK_ITERATIONS, threads=self.threads)
         t1 = time.perf_counter()
         moved = apply_transform(T, sample)
         distance = FITNESS_SPACINGS * voxel

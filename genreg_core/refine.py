@@ -59,11 +59,9 @@ def icp(
                                          max_iterations=max_iterations, fine=fine)
     tree, target = (target.tree, target.points) if isinstance(target, TargetIndex) else (None, target)
     if method == "gicp":
-        T = gicp(np.asarray(source, dtype=np.float64), np.asarray(target, dtype=np.float64), init,
-                 max_distance=max_distance, max_iterations=max_iterations, voxel_size=voxel_size, target_tree=tree)
-        return T if fine is None else gicp(np.asarray(source, dtype=np.float64), np.asarray(target, dtype=np.float64),
-                                           T, max_distance=fine[0], max_iterations=fine[1], voxel_size=voxel_size,
-                                           target_tree=tree)
+        return gicp(np.asarray(source, dtype=np.float64), np.asarray(target, dtype=np.float64), init,
+                    max_distance=max_distance, max_iterations=max_iterations, voxel_size=voxel_size, target_tree=tree,
+                    fine=fine)
     reg = o3d.pipelines.registration
     src = source if isinstance(source, o3d.geometry.PointCloud) else o3d_cloud(source)
     tgt = target if isinstance(target, o3d.geometry.PointCloud) else o3d_cloud(target)
@@ -77,7 +75,7 @@ def icp(
     else:
         raise ValueError(f"icp method must be 'point_to_point' or 'point_to_plane', got {method!r}")
     T = np.eye(4) if init is None else init
-    for distance, iterations in [(max_distance, max_iterations), *([] if fine is None else [fine])]:
+    for distance, iterations in stages(max_distance, max_iterations, fine):
         T = reg.registration_icp(src, tgt, distance, T, estimation,
                                  reg.ICPConvergenceCriteria(max_iteration=iterations)).transformation
     return np.asarray(T).copy()
@@ -103,7 +101,7 @@ class GICPTarget:
         tree = small_gicp.KdTree(cloud, num_threads=threads)
         small_gicp.estimate_covariances(cloud, tree, num_neighbors=self.neighbours, num_threads=threads)
         T = np.eye(4) if init is None else np.asarray(init, float)
-        for distance, iterations in [(max_distance, max_iterations), *([] if fine is None else [fine])]:
+        for distance, iterations in stages(max_distance, max_iterations, fine):
             T = small_gicp.align(self.cloud, cloud, self.tree, T, registration_type="GICP",
                                  max_correspondence_distance=distance, num_threads=threads,
                                  max_iterations=iterations).T_target_source
@@ -111,28 +109,35 @@ class GICPTarget:
 
 
 def gicp_target(index: TargetIndex) -> GICPTarget:
-    """An index's points prepared for GICP (covariances, its k-d tree), once per index: every candidate
-    pose of a pair is refined against the same target."""
+    """An index's points prepared for GICP (covariances, its k-d tree, on the index's threads), once per
+    index: every candidate pose of a pair, every scan tracked in one local map, aligns against the same
+    target."""
     if index.gicp is None:
-        index.gicp = GICPTarget(index.points, tree=index.tree)
+        index.gicp = GICPTarget(index.points, tree=index.tree, threads=index.threads)
     return index.gicp
 
 
 def gicp(source: np.ndarray, target: np.ndarray, init: np.ndarray | None = None, *, max_distance: float,
          max_iterations: int, voxel_size: float = 0.0, threads: int = 1, neighbours: int = 10,
-         target_tree: small_gicp.KdTree | None = None) -> np.ndarray:
-    """small_gicp's GICP from `init`: the 4x4 target_from_source. Both clouds are voxel-downsampled by
-    small_gicp when `voxel_size` > 0; point covariances from `neighbours` nearest neighbours. `target_tree`:
-    a small_gicp k-d tree of exactly `target`'s rows (`TargetIndex.tree`) to search instead of building one
-    (without downsampling)."""
-    init = np.eye(4) if init is None else np.asarray(init, dtype=np.float64)
+         target_tree: small_gicp.KdTree | None = None, fine: tuple[float, int] | None = None) -> np.ndarray:
+    """small_gicp's GICP from `init`: the 4x4 target_from_source; `fine` as `icp`'s. Both clouds are
+    voxel-downsampled by small_gicp when `voxel_size` > 0; point covariances from `neighbours` nearest
+    neighbours. `target_tree`: a small_gicp k-d tree of exactly `target`'s rows (`TargetIndex.tree`) to
+    search instead of building one (without downsampling)."""
+    T = np.eye(4) if init is None else np.asarray(init, dtype=np.float64)
     if voxel_size > 0:
-        result = small_gicp.align(target, source, init, registration_type="GICP", downsampling_resolution=voxel_size,
-                                  max_correspondence_distance=max_distance, num_threads=threads,
-                                  max_iterations=max_iterations)
-        return np.asarray(result.T_target_source).copy()
+        for distance, iterations in stages(max_distance, max_iterations, fine):
+            T = small_gicp.align(target, source, T, registration_type="GICP", downsampling_resolution=voxel_size,
+                                 max_correspondence_distance=distance, num_threads=threads,
+                                 max_iterations=iterations).T_target_source
+        return np.asarray(T).copy()
     return GICPTarget(target, tree=target_tree, neighbours=neighbours, threads=threads).align(
-        source, init, max_distance=max_distance, max_iterations=max_iterations, threads=threads)
+        source, T, max_distance=max_distance, max_iterations=max_iterations, threads=threads, fine=fine)
+
+
+def stages(max_distance: float, max_iterations: int, fine: tuple[float, int] | None) -> list[tuple[float, int]]:
+    """ICP's (distance, iterations) stages: the wide one, then `fine` if given."""
+    return [(max_distance, max_iterations), *([] if fine is None else [fine])]
 
 
 def refine(src: np.ndarray, tgt: np.ndarray | o3d.geometry.PointCloud, T_init: np.ndarray, cfg: RefineConfig

@@ -91,7 +91,7 @@ def test_tracking_from_nearby_guesses_is_gicp_on_the_map_with_a_calibrated_confi
 
 
 def test_gicp_on_a_prepared_target_equals_small_gicps_own_alignment(kitchen):
-    """Tracking's fast path (`refine.GICPTarget`: the map's covariances and tree built once) against
+    """Tracking's fast path (`refine.gicp_target`: the map's covariances and tree built once) against
     small_gicp's align of the arrays (its own trees and covariances) from the same guess."""
     seq, loc = kitchen
     scan = voxel_downsample(seq.points(855, stride=STRIDE).astype(np.float64), loc.voxel_size)
@@ -99,8 +99,8 @@ def test_gicp_on_a_prepared_target_equals_small_gicps_own_alignment(kitchen):
     centroid, radius, _ = loc.scan_geometry(scan)
     local = loc.local(apply_transform(guess, centroid[None])[0], radius)
     assert local.whole and len(local.index.points) == len(loc.map)  # a kitchen: the whole map, built once
-    fast = local.gicp.align(scan, guess, max_distance=0.2, max_iterations=30)
-    assert local.gicp.neighbours == 10  # small_gicp's own for arrays; its 1e-5 m voxels keep every point
+    fast = local.index.gicp.align(scan, guess, max_distance=0.2, max_iterations=30)
+    assert local.index.gicp.neighbours == 10  # small_gicp's own for arrays; its 1e-5 m voxels keep every point
     reference = small_gicp.align(loc.map, scan, guess, registration_type="GICP", downsampling_resolution=1e-5,
                                  max_correspondence_distance=0.2, max_iterations=30).T_target_source
     assert np.abs(fast - reference).max() < 1e-4  # 0.1 mm: its voxels reorder the points, the sums round apart
