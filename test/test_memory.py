@@ -2,10 +2,10 @@
 no fresh pages per call; inference's compiled PDSAC faults none even without it.
 
 glibc's default malloc moves its mmap and trim thresholds as blocks are freed, so its faults per call vary
-from process to process and call to call (0 to 6,650 per call; 30-call means 2,240-4,430 over 12 processes,
-and once 865 over 10 calls in CI). The cost retain_freed_memory removes is therefore asserted against glibc's
-initial policy held fixed (MALLOC_MMAP_THRESHOLD_ at its 128 KiB start: 8,717 faults on every call), and
-the dynamic default only relative to the retained figure."""
+from process to process and call to call (0 to 6,650 per call; 30-call means from 0.8 to 4,430 over 12
+processes and CI runs, once its thresholds have risen past the largest block). The cost retain_freed_memory
+removes is therefore asserted only against glibc's initial policy held fixed (MALLOC_MMAP_THRESHOLD_ at its
+128 KiB start: 8,717 faults on every call); the dynamic default asserts nothing either way."""
 
 from __future__ import annotations
 
@@ -54,5 +54,4 @@ def test_retained_memory_cuts_training_pdsacs_page_faults_and_inference_faults_n
     assert retained < 150  # 0-53 measured (a rare call still grows the heap)
     fixed = _faults_per_call("default", "training", MALLOC_MMAP_THRESHOLD_="131072")
     assert fixed > 5000  # every large block freshly mapped and faulted in on every call (8,717 measured)
-    assert _faults_per_call("default", "training") > 3 * retained  # glibc's moving thresholds: 865-4,430
     assert _faults_per_call("default", "inference") < 50  # the compiled inference allocates no large table
