@@ -180,8 +180,8 @@ class PDSACConfig:
                          "at least `mode_separation` apart from it and each other, each refit on its inliers, refined "
                          "and verified against the clouds (with a calibrated confidence, without an initial guess); "
                          "1: the winner alone.", low=1, high=64)
-    modes_below: float = setting(0.9, "The other modes are verified only when GenReg's refined estimate verifies "
-                                 "below this confidence (1: always).", low=0.0, high=1.0)
+    modes_below: float = setting(0.9, "The other modes (and `passes`) are verified only when GenReg's refined "
+                                 "estimate verifies below this confidence (1: always).", low=0.0, high=1.0)
     mode_separation: float = setting(15.0, "Two hypotheses are distinct modes when their rotations differ by more "
                                      "than this, deg, or their translations by more than a tenth of the source's "
                                      "extent.", low=0.0, high=180.0)
@@ -274,6 +274,10 @@ class RegistrationConfig:
     min_points: int = setting(32, "Clouds with fewer finite points fail (TooFewPointsError).", low=4,
                               high=1_000_000)
     seed: int | None = setting(0, "Subsampling and PDSAC seed; None draws fresh randomness.")
+    passes: int = setting(4, "Network passes while unsure (with a calibrated confidence, without an initial guess, "
+                          "below `pdsac.modes_below`): each more pass registers another subsample with other PDSAC "
+                          "draws (seed + 1, + 2, ...) and the result most probably right wins; 1: one pass.",
+                          low=1, high=16)
     device: str = setting("cpu", "Torch device: cpu, cuda or cuda:<index>.", start_up=True)
     estimate_threads: int = setting(1, "Torch intra-op threads while the network and PDSAC run; 0: torch's own "
                                     "setting. One is faster on small clouds (MODEL_CARD.md).", low=0, high=256)
@@ -289,7 +293,7 @@ class RegistrationConfig:
 # settings, best on real training pairs (MODEL_CARD.md). The node's scene params file, the benchmarks' scene
 # datasets and the calibration scripts all start from it.
 SCENE_REGISTRATION = RegistrationConfig(pdsac=SCENE_PDSAC, refine=RefineConfig(method="gicp", max_iterations=20,
-                                                                                 fine_fraction=0.25))
+                                                                                 fine_fraction=0.25), passes=1)
 
 
 T = TypeVar("T")

@@ -17,6 +17,7 @@ Stages of `register_many` (`register` is one pair of it):
                   calibrated probability of being right (`confidence`)
     8. choose     `Registrar.choose`: the candidate that verifies best replaces the pose so far
     9. result     `Registrar.result`: scores, covariance, unconstrained motions, the confidence; input units
+   10. passes     `Registrar.more_passes`: while unsure, stages 1-9 again on other subsamples; the most probable wins
 Conventions (frames, units, T_target_source): `genreg_core.geometry`. `transformation` is the input's
 target_from_source; internally everything runs in the prepared pair's normalised frame.
 """
@@ -169,11 +170,11 @@ def overlap_score(check: Verifier, choice: Choice) -> float:
     return confidence(check.fitness(choice.transform)[0], check.tight(choice.transform), choice.inlier_ratio)
 
 
-def distinct_poses(T_a: np.ndarray, T_b: np.ndarray, separation_rad: float) -> bool:
-    """Whether two poses (normalised frame) are distinct modes: rotations more than `separation_rad` apart,
-    or translations more than `pdsac.MODE_TRANSLATION`."""
+def distinct_poses(T_a: np.ndarray, T_b: np.ndarray, separation_rad: float, scale: float = 1.0) -> bool:
+    """Whether two poses are distinct modes: rotations more than `separation_rad` apart, or translations more
+    than `pdsac.MODE_TRANSLATION` times `scale` (1: the normalised frame; `PreparedPair.scale`: input units)."""
     cos = (np.trace(T_a[:3, :3].T @ T_b[:3, :3]) - 1.0) / 2.0
-    return bool(cos < np.cos(separation_rad) or np.linalg.norm(T_a[:3, 3] - T_b[:3, 3]) > MODE_TRANSLATION)
+    return bool(cos < np.cos(separation_rad) or np.linalg.norm(T_a[:3, 3] - T_b[:3, 3]) > MODE_TRANSLATION * scale)
 
 
 def verified_mode(check: Verifier, target: object, T_best: np.ndarray, start: np.ndarray,
@@ -264,7 +265,29 @@ class Registrar:
         else:  # metric thresholds on pairs of different scales: one PDSAC threshold per pair
             est = Estimate.cat([self.estimate(a[k: k + 1], b[k: k + 1], gen, stages, f) for k, f in enumerate(frames)])
         shared = {name: seconds / len(prepared) for name, seconds in stages.items()}
-        return [self.refine_and_score(p, est, k, shared) for k, p in enumerate(prepared)]  # 6., 7.
+        results = [self.refine_and_score(p, est, k, shared) for k, p in enumerate(prepared)]  # 6.-9.
+        return [self.more_passes(pair, p, r) for pair, p, r in zip(pairs, prepared, results, strict=True)]  # 10.
+
+    def more_passes(self, pair: tuple[np.ndarray, ...], p: PreparedPair, first: RegistrationResult
+                    ) -> RegistrationResult:
+        """Stage 10 for one pair: while the first pass is unsure (calibrated, no initial guess, confidence below
+        `pdsac.modes_below`), up to `passes - 1` more, each on another subsample with other PDSAC draws (seed +
+        j). The result the calibration finds most probably right wins; the most probable other result that is a
+        distinct pose is its rival (its confidence is at most 1 - the rival's). Seconds of every pass count."""
+        cfg = self.config
+        if cfg.passes <= 1 or not self.calibrated or p.init is not None or first.confidence >= cfg.pdsac.modes_below:
+            return first
+        seeds = [None if cfg.seed is None else cfg.seed + j for j in range(1, cfg.passes)]
+        results = [first, *(Registrar(self.model, replace(cfg, seed=seed, passes=1), self.calibration)
+                            .register(*pair) for seed in seeds)]
+        scores = [self.calibration.probability(np.array([r.verification[f] for f in FEATURES]), cfg.refine.method)
+                  for r in results]
+        best = results[int(np.argmax(scores))]
+        separation = np.radians(cfg.pdsac.mode_separation)
+        rival = max((score for r, score in zip(results, scores, strict=True)
+                     if distinct_poses(r.transformation, best.transformation, separation, p.scale)), default=0.0)
+        timings = best.timings | {"total": sum(r.timings["total"] for r in results), "passes": float(len(results))}
+        return replace(best, confidence=min(best.confidence, 1.0 - rival), timings=timings)
 
     def prepare(self, source: np.ndarray, target: np.ndarray, initial_guess: np.ndarray | None = None
                 ) -> PreparedPair:

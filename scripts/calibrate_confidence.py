@@ -8,10 +8,11 @@
 
 `fit` registers training pairs through the public API with each refinement the calibration serves (the
 current calibration, if any, choosing among PDSAC's modes as in use; fit twice after a change of features),
+keeping every network pass's result (`RegistrationConfig.passes`: the objects' 4, seeds 0-3; scenes 1),
 labels each result by the model's success rule, fits one logistic regression (scikit-learn) per refinement
 over `genreg_core.confidence.FEATURES`
 (the result's `verification`), prints their 5-fold cross-validated ROC AUC and expected calibration error
-(ECE, 10 equal-width bins), writes the calibration beside the checkpoint and a reliability diagram to
+(ECE, 10 equal-width bins; a pair's passes in one fold), writes the calibration beside the checkpoint and a reliability diagram to
 docs/reliability_<model>.png. `held-out` registers pairs never used for fitting with the shipped
 calibration and prints the same figures per set, plus success and the confident-wrong count (confidence
 >= 0.5 and wrong).
@@ -118,20 +119,28 @@ def held_out_sets(model: str, per_set: int) -> dict[str, list[Pair]]:
     return object_pairs("test", "unseen", per_set, 2028)
 
 
-def register(model: str, sets: dict[str, list[Pair]], calibrated: bool) -> Iterator[tuple[str, str, np.ndarray, float, bool, float]]:
-    """(set, profile, features, confidence, success, ms) of every pair under every profile of the model."""
+def register(model: str, sets: dict[str, list[Pair]], calibrated: bool, candidates: bool = False
+             ) -> Iterator[tuple[str, str, np.ndarray, float, bool, float]]:
+    """(set, profile, features, confidence, success, ms, pair) of every pair under every profile of the model; with
+    `candidates`, of every network pass's result (`RegistrationConfig.passes`, seeds 0, 1, ...): the calibration
+    chooses among them, so it is fitted on them all."""
     _, ok = success(model)
     for profile, config in profiles(model).items():
-        reg = Registrar.from_checkpoint(model, config)
-        if not calibrated:
-            reg.calibration = None
+        passes = config.passes if candidates else 1
+        configs = [replace(config, seed=seed, passes=1) for seed in range(passes)] if candidates else [config]
+        regs = [Registrar.from_checkpoint(model, c) for c in configs]
+        for reg in regs:
+            reg.calibration = reg.calibration if calibrated else None
         for name, pairs in sets.items():
-            for source, target, T in tqdm(pairs, desc=f"{model} {profile} {name}", leave=False):
-                t0 = time.perf_counter()
-                result = reg.register(source, target)
-                ms = 1e3 * (time.perf_counter() - t0)
-                re, te = transform_errors(result.transformation, T)
-                yield name, profile, np.array([result.verification[f] for f in FEATURES]), result.confidence, ok(re, te), ms
+            for i, (source, target, T) in enumerate(tqdm(pairs, desc=f"{model} {profile} {name} ({passes} pass(es))",
+                                                         leave=False)):
+                for reg in regs:
+                    t0 = time.perf_counter()
+                    result = reg.register(source, target)
+                    ms = 1e3 * (time.perf_counter() - t0)
+                    re, te = transform_errors(result.transformation, T)
+                    yield (name, profile, np.array([result.verification[f] for f in FEATURES]), result.confidence,
+                           ok(re, te), ms, f"{name} {i}")
 
 
 def summary(p: np.ndarray, y: np.ndarray) -> str:
@@ -163,15 +172,15 @@ def reliability_diagram(p: np.ndarray, y: np.ndarray, title: str, path: Path) ->
     plt.close(fig)
 
 
-def fitted_logistic(X: np.ndarray, y: np.ndarray) -> tuple[Logistic, np.ndarray]:
+def fitted_logistic(X: np.ndarray, y: np.ndarray, groups: np.ndarray) -> tuple[Logistic, np.ndarray]:
     """A logistic regression (scikit-learn) of success on the features, and its 5-fold cross-validated
-    probabilities of the same rows."""
+    probabilities of the same rows (the rows of one pair, its passes, in one fold)."""
     from sklearn.linear_model import LogisticRegression
-    from sklearn.model_selection import StratifiedKFold, cross_val_predict
+    from sklearn.model_selection import StratifiedGroupKFold, cross_val_predict
 
     regression = LogisticRegression(C=1.0, max_iter=5000)
-    held = cross_val_predict(regression, X, y, cv=StratifiedKFold(5, shuffle=True, random_state=0),
-                             method="predict_proba")[:, 1]
+    held = cross_val_predict(regression, X, y, groups=groups, method="predict_proba",
+                             cv=StratifiedGroupKFold(5, shuffle=True, random_state=0))[:, 1]
     regression.fit(X, y)
     return Logistic(tuple(float(c) for c in regression.coef_[0]), float(regression.intercept_[0])), held
 
@@ -195,7 +204,7 @@ def save_calibration(model: str, fitted: dict[str, Logistic], description: str) 
 
 def fit(model: str, per_set: int) -> None:
     # the shipped calibration, if any, chooses among PDSAC's modes as it will in use; its features are refitted
-    rows = list(register(model, training_sets(model, per_set), calibrated=True))
+    rows = list(register(model, training_sets(model, per_set), calibrated=True, candidates=True))
     rule, _ = success(model)
     fitted, held = {}, np.zeros(len(rows))
     print(f"{model}: {len(rows)} training results, one model per refinement, 5-fold cross-validated:")
@@ -203,7 +212,8 @@ def fit(model: str, per_set: int) -> None:
         mine = np.array([r[1] == method for r in rows])
         X = np.stack([r[2] for r, m in zip(rows, mine, strict=True) if m])
         y = np.array([r[4] for r, m in zip(rows, mine, strict=True) if m])
-        fitted[method], held[mine] = fitted_logistic(X, y)
+        groups = np.array([r[6] for r, m in zip(rows, mine, strict=True) if m])
+        fitted[method], held[mine] = fitted_logistic(X, y, groups)
         print(f"  {method:16s} {'all':28s}", summary(held[mine], y))
         for name in dict.fromkeys(r[0] for r in rows):
             mask = mine & np.array([r[0] == name for r in rows])
@@ -264,7 +274,7 @@ def fit_tracking(model: str, per_map: int) -> None:
         raise SystemExit(f"fit-tracking: map tracking is calibrated for the scene model {SCENE_MODEL}, not {model}")
     rows = list(tracking_rows(per_map))
     X, y = np.stack([r[1] for r in rows]), np.array([r[2] for r in rows])
-    logistic, held = fitted_logistic(X, y)
+    logistic, held = fitted_logistic(X, y, np.arange(len(y)))
     print(f"{model} {TRACKING}: {len(rows)} training results, 5-fold cross-validated:")
     print(f"  {'all':28s}", summary(held, y))
     for name in dict.fromkeys(r[0] for r in rows):

@@ -188,7 +188,7 @@ def test_descriptors_carry_ranges_and_read_only():
 
 
 @pytest.mark.parametrize(("content", "text"), [
-    ("/**:\n  ros__parameters:\n    registration:\n      passes: 2\n", "unknown parameter 'registration.passes'"),
+    ("/**:\n  ros__parameters:\n    registration:\n      pases: 2\n", "unknown parameter 'registration.pases'"),
     ("/**:\n  ros__parameters:\n    model:\n      device: cpu\n", "did you mean registration.device?"),
     ("/**:\n  ros__parameters:\n    sync:\n      slop: 1\n", "sync.slop must be a double (write 1.0, not 1)"),
     ("/**:\n  ros__parameters:\n    preprocess: {min_range: 2.0, max_range: 1.0}\n", "min_range"),
