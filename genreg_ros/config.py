@@ -85,6 +85,7 @@ class RegistrationScalars:
 
     min_points: int = _core_setting("min_points")
     seed: int | None = _core_setting("seed")
+    passes: int = _core_setting("passes")
     device: str = _core_setting("device")
     estimate_threads: int = _core_setting("estimate_threads")
 
@@ -226,7 +227,7 @@ class NodeConfig:
         """The core's RegistrationConfig: the groups pdsac, refine and fallback, and the `registration` scalars."""
         r = self.registration
         return RegistrationConfig(pdsac=self.pdsac, refine=self.refine, fallback=self.fallback,
-                                  min_points=r.min_points, seed=r.seed, device=r.device,
+                                  min_points=r.min_points, seed=r.seed, passes=r.passes, device=r.device,
                                   estimate_threads=r.estimate_threads)
 
     def initial_guess_matrix(self) -> np.ndarray | None:

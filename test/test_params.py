@@ -93,7 +93,7 @@ def test_scene_file_registers_with_the_cores_scene_preset():
     assert scene.registration_config() == SCENE_REGISTRATION
     assert scene.model.checkpoint == "7scenes" and scene.workers == 2
     assert set(SCENE_OVERRIDES) == {"model.checkpoint", "workers", "refine.method", "refine.fine_fraction",
-                                    "pdsac.sample_size"}
+                                    "pdsac.sample_size", "registration.passes"}
 
 
 def test_registration_scalars_are_the_cores_scalar_settings():

@@ -199,8 +199,9 @@ def test_refinement_guard_does_not_trade_good_estimates_on_partial_crops():
 
 
 def test_confidence_ranks_crop_successes_above_failures_and_is_wrong_no_more_often_than_it_says():
-    """`RegistrationResult.confidence` on 48 partial-to-partial crops (unseen categories, seed 11) with the
-    shipped partial model and point-to-point ICP, against the known transforms: the ROC AUC of success
+    """`RegistrationResult.confidence` on 96 partial-to-partial crops (unseen categories, seed 11) with the
+    shipped partial model alone (with point-to-point ICP only 1 of 48 fails since the passes of 2026-12-03:
+    too few failures to rank), against the known transforms: the ROC AUC of success
     (RE < 5 deg) is at least 0.9, and the confidence is a probability: among the results at >= 0.5, the
     failures are no more than the probabilities predict (the sum of 1 - confidence) plus two."""
     from genreg_bench.report import roc_auc
@@ -208,8 +209,8 @@ def test_confidence_ranks_crop_successes_above_failures_and_is_wrong_no_more_oft
 
     shapes = load_modelnet40("test", "unseen")
     rng = np.random.default_rng(11)
-    picks = np.linspace(0, len(shapes) - 1, 48).astype(int)
-    reg = Registrar.from_checkpoint("modelnet40_partial", RegistrationConfig(refine=RefineConfig(method="point_to_point")))
+    picks = np.linspace(0, len(shapes) - 1, 96).astype(int)
+    reg = Registrar.from_checkpoint("modelnet40_partial")
     conf, re = [], []
     for i in picks:
         s, t, T = rpmnet_crop_pair(shapes.points[i].astype(np.float64), rng)
@@ -218,7 +219,7 @@ def test_confidence_ranks_crop_successes_above_failures_and_is_wrong_no_more_oft
         re.append(transform_errors(res.transformation, T)[0])
     conf, re = np.array(conf), np.array(re)
     ok = re < 5.0
-    assert 4 <= (~ok).sum() <= 40, np.round(re, 1)  # control: both classes present
+    assert 3 <= (~ok).sum() <= 80, np.round(re, 1)  # control: both classes present (5 measured)
     assert roc_auc(conf, ok) >= 0.9, (roc_auc(conf, ok), np.round(np.stack([conf, re]), 2))
     confident = conf >= 0.5
     expected_failures = float(np.sum(1.0 - conf[confident]))
