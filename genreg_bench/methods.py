@@ -76,7 +76,7 @@ def genreg_method(registrar: Registrar) -> Method:
         seconds = time.perf_counter() - t0
         extra = {
             "confidence": result.confidence, "fitness": result.fitness,
-            "tight_fitness": result.tight_fitness, "inlier_ratio": result.inlier_ratio,
+            "tight_fitness": result.tight_fitness, "inlier_ratio": result.inlier_ratio, "passes": result.passes,
             "timings": {k: float(v) for k, v in result.timings.items()},
         }
         return MethodOutput(result.transformation, seconds, extra)

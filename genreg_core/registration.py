@@ -100,7 +100,9 @@ class RegistrationResult:
     start: str = "genreg"  # what the final pose grew from: "genreg", "initial_guess" (the guess, or the
     # guard's ICP from identity without a guess, overlapped the target better) or "fallback" (FPFH + RANSAC)
     covariance: np.ndarray | None = None  # (6, 6) of the final pose, ROS order (x, y, z, rot x, y, z), m, rad
-    timings: dict[str, float] = field(default_factory=dict)  # seconds per stage and 'total'
+    timings: dict[str, float] = field(default_factory=dict)  # seconds per stage and 'total' (the winning pass's
+    # stages; 'total' of every pass)
+    passes: int = 1  # network passes run (`RegistrationConfig.passes`: more only while unsure)
     unconstrained: tuple[str, ...] = ()  # motions the aligned geometry does not constrain, target frame, e.g.
     # "rotation about (0.00, 0.00, 1.00)" (score.unconstrained_directions); empty: fully constrained
 
@@ -286,8 +288,8 @@ class Registrar:
         separation = np.radians(cfg.pdsac.mode_separation)
         rival = max((score for r, score in zip(results, scores, strict=True)
                      if distinct_poses(r.transformation, best.transformation, separation, p.scale)), default=0.0)
-        timings = best.timings | {"total": sum(r.timings["total"] for r in results), "passes": float(len(results))}
-        return replace(best, confidence=min(best.confidence, 1.0 - rival), timings=timings)
+        timings = best.timings | {"total": sum(r.timings["total"] for r in results)}
+        return replace(best, confidence=min(best.confidence, 1.0 - rival), timings=timings, passes=len(results))
 
     def prepare(self, source: np.ndarray, target: np.ndarray, initial_guess: np.ndarray | None = None
                 ) -> PreparedPair:
