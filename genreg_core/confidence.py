@@ -42,6 +42,11 @@ def features(shares: Sequence[float], inlier_ratio: float, constraint: float) ->
     return np.array([*logs, s1 / s3, s2 / s5])
 
 
+def feature_vector(verification: dict[str, float]) -> np.ndarray:
+    """The `FEATURES` vector of a result's `verification` (`RegistrationResult.verification`)."""
+    return np.array([verification[f] for f in FEATURES])
+
+
 @dataclass(frozen=True)
 class Logistic:
     """P(success | features) = 1 / (1 + exp(-(coef . x + intercept)))."""

@@ -34,7 +34,7 @@ import numpy as np
 import torch
 
 from genreg_core.checkpoint import load_checkpoint, resolve_checkpoint
-from genreg_core.confidence import FEATURES, ConfidenceModel, features, load_beside
+from genreg_core.confidence import FEATURES, ConfidenceModel, feature_vector, features, load_beside
 from genreg_core.config import OBJECT_MODEL, PDSACConfig, RefineConfig, RegistrationConfig
 from genreg_core.fallback import fallback
 from genreg_core.geometry import apply_transform
@@ -282,8 +282,7 @@ class Registrar:
         seeds = [None if cfg.seed is None else cfg.seed + j for j in range(1, cfg.passes)]
         results = [first, *(Registrar(self.model, replace(cfg, seed=seed, passes=1), self.calibration)
                             .register(*pair) for seed in seeds)]
-        scores = [self.calibration.probability(np.array([r.verification[f] for f in FEATURES]), cfg.refine.method)
-                  for r in results]
+        scores = [self.calibration.probability(feature_vector(r.verification), cfg.refine.method) for r in results]
         best = results[int(np.argmax(scores))]
         separation = np.radians(cfg.pdsac.mode_separation)
         rival = max((score for r, score in zip(results, scores, strict=True)

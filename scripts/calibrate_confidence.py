@@ -51,7 +51,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 from genreg_bench.report import calibration_stats
 from genreg_core.checkpoint import resolve_checkpoint
-from genreg_core.confidence import FEATURES, ConfidenceModel, Logistic, calibration_path, file_sha256
+from genreg_core.confidence import ConfidenceModel, Logistic, calibration_path, feature_vector, file_sha256
 from genreg_core.config import SCENE_MODEL, SCENE_REGISTRATION, RegistrationConfig
 from genreg_core.data import FramePairs, ModelNetPairs, RGBDSequence, load_modelnet40
 from genreg_core.data.modelnet40 import rpmnet_crop_pair
@@ -127,10 +127,10 @@ def register(model: str, sets: dict[str, list[Pair]], calibrated: bool, candidat
     _, ok = success(model)
     for profile, config in profiles(model).items():
         passes = config.passes if candidates else 1
-        configs = [replace(config, seed=seed, passes=1) for seed in range(passes)] if candidates else [config]
-        regs = [Registrar.from_checkpoint(model, c) for c in configs]
-        for reg in regs:
-            reg.calibration = reg.calibration if calibrated else None
+        configs = [replace(config, seed=config.seed + j, passes=1) for j in range(passes)] if candidates else [config]
+        loaded = Registrar.from_checkpoint(model, configs[0])
+        calibration = loaded.calibration if calibrated else None
+        regs = [Registrar(loaded.model, c, calibration) for c in configs]  # one model, loaded once
         for name, pairs in sets.items():
             for i, (source, target, T) in enumerate(tqdm(pairs, desc=f"{model} {profile} {name} ({passes} pass(es))",
                                                          leave=False)):
@@ -139,7 +139,7 @@ def register(model: str, sets: dict[str, list[Pair]], calibrated: bool, candidat
                     result = reg.register(source, target)
                     ms = 1e3 * (time.perf_counter() - t0)
                     re, te = transform_errors(result.transformation, T)
-                    yield (name, profile, np.array([result.verification[f] for f in FEATURES]), result.confidence,
+                    yield (name, profile, feature_vector(result.verification), result.confidence,
                            ok(re, te), ms, f"{name} {i}")
 
 
@@ -264,7 +264,7 @@ def tracking_rows(per_map: int, seed: int = 2027) -> Iterator[tuple[str, np.ndar
                 guess[:3, :3] = Rotation.from_rotvec(np.deg2rad(sigma_r) * rng.normal(size=3)).as_matrix() @ guess[:3, :3]
                 result = loc.track(scan, guess)
                 errors = transform_errors(result.transformation, truth)
-                yield f"{start}-{start + 199} {sigma_t} m", np.array([result.verification[f] for f in FEATURES]), ok(*errors)
+                yield f"{start}-{start + 199} {sigma_t} m", feature_vector(result.verification), ok(*errors)
 
 
 def fit_tracking(model: str, per_map: int) -> None:
