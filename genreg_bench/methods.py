@@ -7,7 +7,8 @@ ratio and stage timings of `RegistrationResult`). GenReg methods load one checkp
 point-to-point / point-to-plane / GICP refinement with its guard, at the API's default refinement settings,
 except the preset's own refinement: scenes' GICP is the node's, 20 iterations) and `genreg+p2plane+fallback`
 (plus the opt-in FPFH + RANSAC fallback; reported apart from GenReg's own figures); `load_each` skips a checkpoint that does not load, with a
-message. A suite runs its own methods (`datasets.Suite.methods`), `DEFAULT_METHODS` unless it names them.
+message. The reference `truth+gicp` (`TRUTH_METHODS`) is a `TruthMethod`: it is also given the true pose.
+A suite runs its own methods (`datasets.Suite.methods`), `DEFAULT_METHODS` unless it names them.
 `measure_throughput` times the network + PDSAC stage (`Registrar.estimate`) at batch 1 and batched.
 """
 
@@ -21,7 +22,7 @@ from typing import Any, TypeVar
 import numpy as np
 import torch
 
-from genreg_bench.baselines import BASELINES, BaselineFn, BaselineParams, identity
+from genreg_bench.baselines import BASELINES, BaselineFn, BaselineParams, identity, truth_gicp
 from genreg_bench.datasets import OBJECT, SCENE
 from genreg_core.config import (
     OBJECT_MODEL,
@@ -38,7 +39,10 @@ DEFAULT_CHECKPOINTS = {OBJECT: OBJECT_MODEL, SCENE: SCENE_MODEL}
 # genreg+p2plane+fallback: with the opt-in classical fallback (FPFH + RANSAC below confidence 0.3); reported
 # apart, never counted as GenReg's own figures
 GENREG_METHODS = ("genreg", "genreg+icp", "genreg+p2plane", "genreg+gicp", "genreg+p2plane+fallback")
-REFERENCE_METHODS = ("identity",)
+# References, not methods: no registration; GICP started at the true pose (given the answer: on real frames,
+# how often the clouds' geometry and the recorded pose disagree by more than the success rule allows)
+REFERENCE_METHODS = ("identity", "truth+gicp")
+TRUTH_METHODS = frozenset({"truth+gicp"})
 ALL_METHODS = (*REFERENCE_METHODS, *GENREG_METHODS, *BASELINES)
 # The smoke, quick and full suites' methods (the paper tables' comparison).
 DEFAULT_METHODS = ("identity", "genreg", "genreg+icp", "icp-p2p", "icp-p2plane", "fpfh+fgr", "fpfh+ransac",
@@ -59,11 +63,20 @@ class MethodOutput:
 
 
 Method = Callable[[np.ndarray, np.ndarray], MethodOutput]
+TruthMethod = Callable[[np.ndarray, np.ndarray, np.ndarray], MethodOutput]  # also given the true pose
 
 
 def baseline_method(fn: BaselineFn, params: BaselineParams) -> Method:
     def run(source: np.ndarray, target: np.ndarray) -> MethodOutput:
         T, seconds = fn(source, target, params)
+        return MethodOutput(T, seconds)
+
+    return run
+
+
+def truth_method(params: BaselineParams) -> TruthMethod:
+    def run(source: np.ndarray, target: np.ndarray, truth: np.ndarray) -> MethodOutput:
+        T, seconds = truth_gicp(source, target, params, truth)
         return MethodOutput(T, seconds)
 
     return run
@@ -121,12 +134,15 @@ def load_each(
 
 def method_table(
     wanted: Sequence[str], params: BaselineParams, genreg: dict[str, Registrar] | None
-) -> dict[str, Method]:
-    """The wanted methods on one dataset, in order; GenReg methods only when its registrars loaded."""
-    table: dict[str, Method] = {}
+) -> dict[str, Method | TruthMethod]:
+    """The wanted methods on one dataset, in order; GenReg methods only when its registrars loaded. The
+    `TRUTH_METHODS` are called with the true pose as well."""
+    table: dict[str, Method | TruthMethod] = {}
     for m in wanted:
         if m == "identity":
             table[m] = baseline_method(identity, params)
+        elif m in TRUTH_METHODS:
+            table[m] = truth_method(params)
         elif m in BASELINES:
             table[m] = baseline_method(BASELINES[m], params)
         elif genreg is not None:

@@ -25,6 +25,7 @@ from collections.abc import Callable, Sequence
 from dataclasses import asdict, dataclass, field
 from typing import Any
 
+import numpy as np
 import torch
 from tqdm import tqdm
 
@@ -43,8 +44,10 @@ from genreg_bench.methods import (
     DEFAULT_CHECKPOINTS,
     DEFAULT_METHODS,
     GENREG_METHODS,
+    TRUTH_METHODS,
     Method,
     MethodOutput,
+    TruthMethod,
     load_each,
     load_genreg,
     measure_throughput,
@@ -80,8 +83,16 @@ def scored_fields(spec: DatasetSpec, truth: PairTruth, T: Any, seconds: float) -
     return {"re_deg": re, "te": te, "cd": cd, "seconds": seconds, "success": spec.success(re, te)}
 
 
+def call(name: str, method: Method | TruthMethod, item: dict[str, Any]) -> MethodOutput:
+    """One method on one pair: the `TRUTH_METHODS` are given its true pose as well."""
+    if name in TRUTH_METHODS:
+        return method(item["source"], item["target"], np.asarray(item["transform"], dtype=np.float64))
+    return method(item["source"], item["target"])
+
+
 def run_dataset(
-    spec: DatasetSpec, pairs: Any, indices: Sequence[int], methods: dict[str, Method], options: BenchOptions,
+    spec: DatasetSpec, pairs: Any, indices: Sequence[int], methods: dict[str, Method | TruthMethod],
+    options: BenchOptions,
     progress: tqdm | None = None, measure: Measure | None = None,
 ) -> tuple[list[dict[str, Any]], list[float], list[float | None]]:
     """Register pairs[i] for i in indices with every method; returns (records, CD floor per pair, overlap
@@ -99,7 +110,7 @@ def run_dataset(
         for name, method in methods.items():
             rec: dict[str, Any] = {"dataset": spec.name, "pair": int(i), "method": name, **pair_fields}
             try:
-                out = method(item["source"], item["target"])
+                out = call(name, method, item)
                 rec.update(scored_fields(spec, truth, out.transformation, out.seconds), **out.extra)
                 if measure is not None:
                     rec.update(measure(out, truth))
@@ -163,7 +174,7 @@ def run_benchmark(
         warm = pairs[indices[0]]
         for m, method in table.items():  # first-call costs (allocations, thread pools) stay out of the timings
             if (m, spec.kind, spec.units) not in warmed:
-                method(warm["source"], warm["target"])
+                call(m, method, warm)
                 warmed.add((m, spec.kind, spec.units))
         recs, floors, overlaps = run_dataset(spec, pairs, indices, table, options, bar)
         records += recs

@@ -1,4 +1,4 @@
-"""Inference fast paths (issue 15) against their reference forms: the model's no-gradient paths give the values
+"""Inference fast paths against their reference forms: the model's no-gradient paths give the values
 of the differentiable ones, PDSAC's batched inference equals its per-direction form, and its weighted sampler
 draws from the same distribution as the multinomial one training uses. Nothing here is timed."""
 

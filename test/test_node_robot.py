@@ -1,4 +1,4 @@
-"""register_node as robots use it (issue 14), the node in its own process and a client of this test's own:
+"""register_node as robots use it: the node in its own process and a client of this test's own:
 time jumps, the initial guess (parameter, topics, frames, expiry), per-result quality (`pose` with its
 covariance, `registration_status`, min_confidence) and the warning for a publisher that delivers nothing.
 
