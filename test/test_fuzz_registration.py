@@ -11,7 +11,7 @@ from hypothesis import HealthCheck, event, given, settings
 from hypothesis import strategies as st
 from scipy.spatial.transform import Rotation
 
-from genreg_core.config import SCENE_PDSAC, RefineConfig, RegistrationConfig
+from genreg_core.config import SCENE_REGISTRATION, RefineConfig, RegistrationConfig
 from genreg_core.errors import GenRegError
 from genreg_core.registration import Registrar
 
@@ -80,10 +80,10 @@ def guesses(draw: st.DrawFn) -> np.ndarray | None:
 
 @pytest.fixture(scope="module")
 def registrars() -> list[Registrar]:
-    """The default object model with point-to-plane refinement, and the scene profile (GICP)."""
-    scene = RegistrationConfig(pdsac=SCENE_PDSAC, refine=RefineConfig(method="gicp"))
+    """The default object model with point-to-plane refinement (its extra passes included), and the scene
+    profile (`config.SCENE_REGISTRATION`: GICP with its tight stage, one pass)."""
     return [Registrar.from_checkpoint(config=RegistrationConfig(refine=RefineConfig(method="point_to_plane"))),
-            Registrar.from_checkpoint("7scenes", scene)]
+            Registrar.from_checkpoint("7scenes", SCENE_REGISTRATION)]
 
 
 def check(result) -> None:
