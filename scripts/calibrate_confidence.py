@@ -120,7 +120,7 @@ def held_out_sets(model: str, per_set: int) -> dict[str, list[Pair]]:
 
 
 def register(model: str, sets: dict[str, list[Pair]], calibrated: bool, candidates: bool = False
-             ) -> Iterator[tuple[str, str, np.ndarray, float, bool, float]]:
+             ) -> Iterator[tuple[str, str, np.ndarray, float, bool, float, str]]:
     """(set, profile, features, confidence, success, ms, pair) of every pair under every profile of the model; with
     `candidates`, of every network pass's result (`RegistrationConfig.passes`, seeds 0, 1, ...): the calibration
     chooses among them, so it is fitted on them all."""
