@@ -83,7 +83,8 @@ def icp(
 
 class GICPTarget:
     """A target cloud prepared once for small_gicp's GICP (its k-d tree and point covariances), to align
-    many sources against (a map)."""
+    many sources against (a map). Each source is prepared the same way on the same `threads` (per point:
+    the same result on any number of threads)."""
 
     def __init__(self, points: np.ndarray, *, tree: small_gicp.KdTree | None = None, neighbours: int = 10,
                  threads: int = 1) -> None:
@@ -91,15 +92,18 @@ class GICPTarget:
         self.cloud = small_gicp.PointCloud(np.ascontiguousarray(points, dtype=np.float64))
         self.tree = tree or small_gicp.KdTree(self.cloud, num_threads=threads)
         self.neighbours = neighbours
+        self.threads = threads
         small_gicp.estimate_covariances(self.cloud, self.tree, num_neighbors=neighbours, num_threads=threads)
 
     def align(self, source: np.ndarray, init: np.ndarray | None = None, *, max_distance: float, max_iterations: int,
               threads: int = 1, fine: tuple[float, int] | None = None) -> np.ndarray:
-        """GICP of `source` (covariances from as many neighbours as the target's) from `init`: the 4x4
-        target_from_source; with `fine` = (distance, iterations), that many more at that distance."""
+        """GICP of `source` (its k-d tree and covariances from as many neighbours as the target's, on the
+        target's threads) from `init`: the 4x4 target_from_source; with `fine` = (distance, iterations), that
+        many more at that distance. The alignment runs on `threads` (more than one changes its last bits
+        from run to run: the order of its sums)."""
         cloud = small_gicp.PointCloud(np.ascontiguousarray(source, dtype=np.float64))
-        tree = small_gicp.KdTree(cloud, num_threads=threads)
-        small_gicp.estimate_covariances(cloud, tree, num_neighbors=self.neighbours, num_threads=threads)
+        tree = small_gicp.KdTree(cloud, num_threads=self.threads)
+        small_gicp.estimate_covariances(cloud, tree, num_neighbors=self.neighbours, num_threads=self.threads)
         T = np.eye(4) if init is None else np.asarray(init, float)
         for distance, iterations in stages(max_distance, max_iterations, fine):
             T = small_gicp.align(self.cloud, cloud, self.tree, T, registration_type="GICP",

@@ -238,3 +238,19 @@ def test_gicp_on_the_scores_index_searches_its_tree_and_refines_identically(fine
     assert p.target_index.gicp is prepared  # the second candidate reused the target's covariances
     re, te = transform_errors(p.to_input_units(shared), truth)
     assert re < 0.5 and te < 0.01
+
+
+def test_gicp_prepares_on_more_threads_with_the_same_transform():
+    """GICP's k-d trees and covariances of both clouds on two threads (`GICPTarget`'s threads; the alignment
+    on one) give bit for bit the transform of a one-thread run, and it recovers the known motion."""
+    from genreg_core.refine import GICPTarget
+    from genreg_core.score import TargetIndex
+
+    src = _surface(6000, seed=7)
+    truth = random_transform(np.random.default_rng(8), 3.0, 0.02)
+    tgt = apply_transform(truth, _surface(6000, seed=9))
+    runs = [GICPTarget(tgt, tree=TargetIndex(tgt, threads=n).tree, threads=n).align(
+        src, max_distance=0.3, max_iterations=20, fine=(0.075, 10)) for n in (1, 2)]
+    assert np.array_equal(runs[0], runs[1])
+    re, te = transform_errors(runs[0], truth)
+    assert re < 0.5 and te < 0.01
