@@ -1,12 +1,15 @@
 """Localisation of a scan in a prebuilt map: T_map_scan with GenReg, with or without an initial guess.
 
     loc = MapLocalizer(map_xyz)                      # (M, 3) map in metres, e.g. fused and voxelised frames
+    loc = MapLocalizer(map_xyz, registrar=registrar, config=LocalizationConfig(candidates=5))  # other settings
     result = loc.localize(scan_xyz)                  # (N, 3) scan in its sensor frame
     result.transformation                            # T_map_scan; result.confidence: P(the pose is right)
 
-A raw depth scan is dense near the camera and sparse far away, a fused map even: the scan is first
-voxelised to the map's resolution (its median nearest-neighbour spacing, or `voxel_size`), so the model's
-512 samples of both clouds see the same surfaces alike.
+Every setting is a field of `genreg_core.config.LocalizationConfig` (its help says what it does, its
+range what it accepts); the names below are those fields. A raw depth scan is dense near the camera and
+sparse far away, a fused map even: the scan is first voxelised to the map's resolution (its median
+nearest-neighbour spacing, or `voxel_size`), so the model's 512 samples of both clouds see the same
+surfaces alike.
 
 Without a guess, the scan is first registered against the whole map; that pose stands when the map is
 not much larger than the scan (extent below `whole_map_ratio` x the scan's) or its confidence reaches
@@ -14,15 +17,15 @@ not much larger than the scan (extent below `whole_map_ratio` x the scan's) or i
 samples lie where the scan is; on redkitchen training maps 1.8-1.9x a scan's extent the whole map placed
 11 of 13 and 5 of 11 scans, the places 13 of 13 each) the map is cut into candidate places: the centres
 of occupied cells of a grid with spacing `place_spacing` x the scan's radius, each place the map points
-within `place_radius` x that radius of its centre, at most `PLACE_POINTS` of them (built on first use per
+within `place_radius` x that radius of its centre, at most `place_points` of them (built on first use per
 radius, kept in memory and, with `cache_dir`, on disk by the map's content hash). The scan is registered
-against every place in batched `Registrar.register_many` calls at `SCREEN_MODEL_POINTS` points (the same
+against every place in batched `Registrar.register_many` calls at `screen_model_points` points (the same
 weights), unrefined (GenReg is rotation invariant: no orientation is searched); the best `candidates` by confidence are verified against a crop
 of the whole map around each (registration from the candidate's pose as the initial guess), and the most
 confident pose, the whole map's included, wins.
 
 With a guess (tracking), the scan is aligned by GICP from the guess against the map around the guessed
-scan position (`LOCAL_RADIUS` scan radii; the whole map when it fits), prepared once per region
+scan position (`local_radius` scan radii; the whole map when it fits), prepared once per region
 (`refine.gicp_target`: its covariances and k-d tree), with no network pass: 13-20 ms a scan held out.
 Its confidence is the calibration's `TRACKING` model (fitted on training maps from guesses near and far
 from the truth: `scripts/calibrate_confidence.py fit-tracking`) over the same verification
@@ -31,8 +34,10 @@ features, the inlier ratio taken as 1 (no generated correspondences). When that 
 the scan's radius) and GenReg registers the scan from the guess; the more probable pose wins. A
 checkpoint whose calibration has no `TRACKING` model always takes that second path.
 
-A scan the map does not hold gets a low confidence, not an exception; bad input raises the named errors
-the Registrar raises (`genreg_core.errors`). Constants were chosen on redkitchen training frames 0-799.
+`accept_whole` and `track_below` steer the search's effort; whether a pose is good enough is the caller's
+decision from its confidence (the node's `min_confidence`). A scan the map does not hold gets a low
+confidence, not an exception; bad input raises the named errors the Registrar raises
+(`genreg_core.errors`). The defaults were chosen on redkitchen training frames 0-799.
 """
 
 from __future__ import annotations
@@ -51,7 +56,7 @@ from scipy.spatial import cKDTree
 
 from genreg_core.checkpoint import resized
 from genreg_core.confidence import FEATURES, SPACINGS, features
-from genreg_core.config import SCENE_MODEL, SCENE_REGISTRATION, RegistrationConfig
+from genreg_core.config import SCENE_MODEL, SCENE_REGISTRATION, LocalizationConfig
 from genreg_core.errors import ConfigError, TooFewPointsError
 from genreg_core.geometry import apply_transform
 from genreg_core.prepare import check_transform, robust_extent, validate_cloud
@@ -70,22 +75,15 @@ from genreg_core.score import (
     unconstrained_directions,
 )
 
+# The settings are `LocalizationConfig`'s. Measured for its defaults on redkitchen training maps: places
+# screened at N (screen_model_points) 512, 256 and 128 placed 29 of 30 scans each, in 1.34 s, 0.76 s and 0.74 s
+# a scan; places of at most 4096, 8192 or all (about 34k) map points (place_points) 29 of 30 each; tracking on
+# 1500 scan points (track_points) as often right as on 2500 from guesses 2 cm to 1 m off, in 0.6x the time
+# (1000 lost some). Below: implementation details that change no result.
 SPACING_SAMPLES = 20_000  # the map's resolution is the median nearest-neighbour spacing of this many points
 RADIUS_QUANTILE = 0.9  # a scan's radius: this quantile of its points' distances from their centroid
-SCREEN_POINTS = 1000  # candidate places are scored on this many points (the verification on the profile's)
-SCREEN_MODEL_POINTS = 256  # and registered at this N (a model that runs at any N; redkitchen training maps,
-# places only: 29 of 30 scans placed at 512, 256 and 128; 1.34 s, 0.76 s and 0.74 s a scan)
-PLACE_CHUNK = 256  # place centres searched at once
-RADIUS_STEP = 1.25  # scan radii are rounded up to powers of this, so nearby radii share one place grid
+PLACE_CHUNK = 256  # place centres searched at once (bounds the memory of the neighbour lists)
 TRACKING = "map_tracking"  # the calibration's model of tracking results (`ConfidenceModel.by_refinement` key)
-TRACK_POINTS = 1500  # tracking aligns and verifies at most this many of the voxelised scan's points (redkitchen
-# training maps: the same success as 2500 from guesses 2 cm to 1 m off, in 0.6x the time; 1000 lost some)
-TRACK_DISTANCE = 10.0  # tracking's GICP correspondence distance, map voxels
-TRACK_ITERATIONS = 30  # and its iterations
-LOCAL_RADIUS = 3.0  # tracking's local map: the map within this many scan radii of the guessed scan centre
-LOCAL_KEEP = 1.0  # kept while the guessed scan centre stays within this many scan radii of its centre
-PLACE_POINTS = 4096  # a place keeps at most this many of its map rows (a random subset; the model samples 512;
-# redkitchen training maps, places only: 29 of 30 scans placed with 4096, 8192 or all, about 34k)
 EXTENT_SAMPLES = 200_000  # the map's robust extent from this many of its points
 
 
@@ -157,78 +155,53 @@ class MapLocalizer:
     def __init__(
         self,
         map_xyz: np.ndarray,
-        config: RegistrationConfig | None = None,
-        checkpoint: str = SCENE_MODEL,
         *,
-        voxel_size: float | None = None,
         registrar: Registrar | None = None,
-        candidates: int = 3,
-        whole_map_ratio: float = 1.25,
-        accept_whole: float = 0.9,
-        place_spacing: float = 0.5,
-        place_radius: float = 1.2,
-        crop_radius: float = 1.5,
-        batch_size: int = 16,
-        track_below: float = 0.5,
-        threads: int | None = None,
+        config: LocalizationConfig = LocalizationConfig(),
         cache_dir: str | os.PathLike | None = None,
     ) -> None:
-        """`map_xyz`: (M, 3) map points (metres, or any units the scans share); `voxel_size`: the map's
-        resolution (None: its median nearest-neighbour spacing); `registrar`: a loaded one instead of
-        `checkpoint` + `config`; `threads`: tracking's threads (default: OMP_NUM_THREADS, else 1);
-        `cache_dir`: where the candidate places are kept between runs (files keyed by the map's content
-        hash and the settings; None: in memory only); the other settings as in the module docstring."""
-        config = config or SCENE_REGISTRATION
-        self.registrar = registrar or Registrar.from_checkpoint(checkpoint, config)
+        """`map_xyz`: (M, 3) map points (metres, or any units the scans share); `registrar`: the loaded
+        Registrar to localise with (None: the scene model `SCENE_MODEL` with the scene profile
+        `SCENE_REGISTRATION`); `config`: the localisation settings (their limits are checked when it is
+        built); `cache_dir`: where the candidate places are kept between runs (files keyed by the map's
+        content hash and the settings; None: in memory only)."""
+        if not isinstance(config, LocalizationConfig):
+            raise ConfigError(f"config must be a LocalizationConfig, got {type(config).__name__}")
+        self.registrar = registrar or Registrar.from_checkpoint(SCENE_MODEL, SCENE_REGISTRATION)
         min_points = self.registrar.config.min_points
+        if config.place_points < min_points:
+            raise ConfigError(f"localization.place_points ({config.place_points}) must be at least the "
+                              f"registration's min_points ({min_points})")
         finite, _ = validate_cloud(map_xyz, "map", min_points)
-        for name, value, low in (("candidates", candidates, 1), ("batch_size", batch_size, 1)):
-            if not isinstance(value, int) or value < low:
-                raise ConfigError(f"{name} must be an integer >= {low}, got {value!r}")
-        for name, value in (("accept_whole", accept_whole), ("track_below", track_below)):
-            if not 0.0 <= value <= 1.0:
-                raise ConfigError(f"{name} must be in [0, 1], got {value!r}")
-        for name, value in (("whole_map_ratio", whole_map_ratio), ("place_spacing", place_spacing),
-                            ("place_radius", place_radius), ("crop_radius", crop_radius)):
-            if not (np.isfinite(value) and value > 0):
-                raise ConfigError(f"{name} must be a positive number, got {value!r}")
-        if voxel_size is not None and not (np.isfinite(voxel_size) and voxel_size >= 0):
-            raise ConfigError(f"voxel_size must be >= 0, got {voxel_size!r}")
+        self.config = config
         self.map = np.ascontiguousarray(finite, dtype=np.float64)
         self.tree = kd_tree(self.map)
-        self.voxel_size = median_spacing(self.map, tree=self.tree) if voxel_size is None else float(voxel_size)
-        self.threads = threads or int(os.environ.get("OMP_NUM_THREADS") or 1)
-        self.track_below = track_below
+        self.voxel_size = float(config.voxel_size) or median_spacing(self.map, tree=self.tree)
+        self.threads = config.threads or int(os.environ.get("OMP_NUM_THREADS") or 1)
         self._local: LocalMap | None = None
         rng = np.random.default_rng(0)
         sample = self.map if len(self.map) <= EXTENT_SAMPLES else self.map[rng.choice(len(self.map), EXTENT_SAMPLES)]
         _, self.extent = robust_extent(sample)
         self.cache_dir = None if cache_dir is None else Path(cache_dir)
         self._key = hashlib.sha1(self.map.data).hexdigest()[:16] if cache_dir is not None else ""
-        self.candidates = candidates
-        self.whole_map_ratio = whole_map_ratio
-        self.accept_whole = accept_whole
-        self.place_spacing = place_spacing
-        self.place_radius = place_radius
-        self.crop_radius = crop_radius
-        self.batch_size = batch_size
         self._places: dict[float, list[np.ndarray]] = {}  # scan radius -> the places' map rows
         # candidates are screened without refinement (ranking only), then verified with the full profile
         cfg = self.registrar.config
-        self._screen_config = replace(cfg, refine=replace(cfg.refine, method="none", num_points=SCREEN_POINTS),
+        self._screen_config = replace(cfg, refine=replace(cfg.refine, method="none", num_points=config.screen_points),
                                       pdsac=replace(cfg.pdsac, modes=1))
-        self._screen_model = resized(self.registrar.model, SCREEN_MODEL_POINTS) or self.registrar.model
+        self._screen_model = resized(self.registrar.model, config.screen_model_points) or self.registrar.model
 
     def places(self, radius: float) -> list[np.ndarray]:
         """The candidate places for scans of this radius, as map row indices: the map points within
         `place_radius` x `radius` of each centre of an occupied grid cell (grid spacing `place_spacing` x
-        `radius`) as sorted int32 rows, at most `PLACE_POINTS` of them (a random subset: places overlap,
+        `radius`) as sorted int32 rows, at most `place_points` of them (a random subset: places overlap,
         about 60 per map point at the default spacing and radius); places with fewer points than
         registration needs are dropped. Built on first use, kept by radius (and in `cache_dir`)."""
         if radius not in self._places:
+            c = self.config
             path = None if self.cache_dir is None else self.cache_dir / (
-                f"places-{self._key}-r{radius:.6g}-s{self.place_spacing:.6g}-p{self.place_radius:.6g}"
-                f"-n{PLACE_POINTS}-m{self.registrar.config.min_points}.npz")
+                f"places-{self._key}-r{radius:.6g}-s{c.place_spacing:.6g}-p{c.place_radius:.6g}"
+                f"-n{c.place_points}-m{self.registrar.config.min_points}.npz")
             cached = read_places(path) if path is not None and path.is_file() else None
             self._places[radius] = cached if cached is not None else self.build_places(radius)
             if path is not None and cached is None:
@@ -237,23 +210,24 @@ class MapLocalizer:
 
     def build_places(self, radius: float) -> list[np.ndarray]:
         """`places` built from the map (seeded: the same map gives the same places). When places are much
-        larger than `PLACE_POINTS` (a building), they are searched in a random share of the map that
+        larger than `place_points` (a building), they are searched in a random share of the map that
         leaves them about twice that many points (a random subset of a random subset: 10 M points in
         seconds, not a minute); maps whose places are smaller are searched whole."""
-        spacing, reach = self.place_spacing * radius, self.place_radius * radius
+        cap = self.config.place_points
+        spacing, reach = self.config.place_spacing * radius, self.config.place_radius * radius
         centres = (occupied_cells(self.map, spacing) + 0.5) * spacing
         minimum, kept, rng = self.registrar.config.min_points, [], np.random.default_rng(0)
         probe = centres[rng.choice(len(centres), min(len(centres), 64), replace=False)]
         typical = float(np.median(self.tree.query_ball_point(probe, reach, return_length=True)))
-        share = min(1.0, 2.0 * PLACE_POINTS / max(typical, 1.0))
+        share = min(1.0, 2.0 * cap / max(typical, 1.0))
         rows_of = np.flatnonzero(rng.random(len(self.map)) < share) if share < 1.0 else None
         tree = self.tree if rows_of is None else kd_tree(self.map[rows_of])
         for start in range(0, len(centres), PLACE_CHUNK):  # a chunk at a time: large maps, few lists alive
             for rows in tree.query_ball_point(centres[start: start + PLACE_CHUNK], reach, workers=self.threads):
                 if len(rows) >= minimum:
                     rows = np.asarray(rows, dtype=np.int64) if rows_of is None else rows_of[rows]
-                    if len(rows) > PLACE_POINTS:
-                        rows = rng.choice(rows, PLACE_POINTS, replace=False)
+                    if len(rows) > cap:
+                        rows = rng.choice(rows, cap, replace=False)
                     kept.append(np.sort(rows).astype(np.int32))
         return kept
 
@@ -262,10 +236,10 @@ class MapLocalizer:
         return self.map[np.asarray(self.tree.query_ball_point(np.reshape(centre, 3), radius), dtype=np.int64)]
 
     def scan_geometry(self, scan: np.ndarray) -> tuple[np.ndarray, float, float]:
-        """(centroid, radius rounded up to a power of `RADIUS_STEP`, robust extent) of a voxelised scan."""
-        centroid = scan.mean(axis=0)
+        """(centroid, radius rounded up to a power of `radius_step`, robust extent) of a voxelised scan."""
+        centroid, step = scan.mean(axis=0), self.config.radius_step
         radius = float(np.quantile(np.linalg.norm(scan - centroid, axis=1), RADIUS_QUANTILE))
-        radius = RADIUS_STEP ** np.ceil(np.log(max(radius, 1e-9)) / np.log(RADIUS_STEP))
+        radius = step ** np.ceil(np.log(max(radius, 1e-9)) / np.log(step))
         return centroid, float(radius), robust_extent(scan)[1]
 
     def localize(self, scan_xyz: np.ndarray, initial_guess: np.ndarray | None = None) -> RegistrationResult:
@@ -282,16 +256,17 @@ class MapLocalizer:
         centroid, radius, extent = self.scan_geometry(scan)
         if guess is not None:
             tracked = self.track(scan, guess, (centroid, radius)) if self.tracking_calibrated else None
-            if tracked is not None and tracked.confidence >= self.track_below:
+            if tracked is not None and tracked.confidence >= self.config.track_below:
                 return tracked
             searched = self.refined(scan, guess, apply_transform(guess, centroid[None])[0], radius)
             return searched if tracked is None else max(tracked, searched, key=lambda r: r.confidence)
         whole = reg.register(scan, self.map)
         places = self.places(radius)
-        if self.extent < self.whole_map_ratio * extent or whole.confidence >= self.accept_whole or not places:
+        c = self.config
+        if self.extent < c.whole_map_ratio * extent or whole.confidence >= c.accept_whole or not places:
             return whole
         screened = self.screen(scan, [self.map[rows] for rows in places])
-        best = sorted(range(len(screened)), key=lambda k: -screened[k].confidence)[: self.candidates]
+        best = sorted(range(len(screened)), key=lambda k: -screened[k].confidence)[: c.candidates]
         verified = [self.refined(scan, screened[k].transformation,
                                  apply_transform(screened[k].transformation, centroid[None])[0], radius) for k in best]
         return max([whole, *verified], key=lambda r: r.confidence)
@@ -303,14 +278,14 @@ class MapLocalizer:
         return calibration is not None and calibration.serves(TRACKING)
 
     def local(self, centre: np.ndarray, radius: float) -> LocalMap | None:
-        """Tracking's local map for a scan of this radius guessed at `centre`: the map within `LOCAL_RADIUS`
-        x `radius` of it, prepared once and kept while the guessed centre stays within `LOCAL_KEEP` x
+        """Tracking's local map for a scan of this radius guessed at `centre`: the map within `local_radius`
+        x `radius` of it, prepared once and kept while the guessed centre stays within `local_keep` x
         `radius` of the local map's (or it holds the whole map); None when it holds too few points."""
-        local = self._local
+        local, c = self._local, self.config
         if local is not None and local.radius == radius and (
-                local.whole or np.linalg.norm(centre - local.centre) <= LOCAL_KEEP * radius):
+                local.whole or np.linalg.norm(centre - local.centre) <= c.local_keep * radius):
             return local
-        rows = np.sort(np.asarray(self.tree.query_ball_point(centre, LOCAL_RADIUS * radius), dtype=np.int64))
+        rows = np.sort(np.asarray(self.tree.query_ball_point(centre, c.local_radius * radius), dtype=np.int64))
         if len(rows) < self.registrar.config.min_points:
             return None
         points = self.map[rows]
@@ -332,11 +307,12 @@ class MapLocalizer:
         local = self.local(apply_transform(guess, centroid[None])[0], radius)
         if local is None:
             return None
-        rows = np.random.default_rng(self.registrar.config.seed).permutation(len(scan))[:TRACK_POINTS]
+        c = self.config
+        rows = np.random.default_rng(self.registrar.config.seed).permutation(len(scan))[:c.track_points]
         sample = scan[np.sort(rows)]
         voxel, index = self.voxel_size, local.index
-        T = gicp_target(index).align(sample, guess, max_distance=TRACK_DISTANCE * voxel,
-                                     max_iterations=TRACK_ITERATIONS, threads=self.threads)
+        T = gicp_target(index).align(sample, guess, max_distance=c.track_distance * voxel,
+                                     max_iterations=c.track_iterations, threads=self.threads)
         t1 = time.perf_counter()
         moved = apply_transform(T, sample)
         distance = FITNESS_SPACINGS * voxel
@@ -359,20 +335,21 @@ class MapLocalizer:
             inlier_rmse=float(np.sqrt(squared[close].mean())) if close.any() else float("nan"),
             confidence=constraint * probability, start="initial_guess", covariance=covariance,
             unconstrained=unconstrained, verification=dict(zip(FEATURES, verification.tolist(), strict=True)),
-            timings={"refine": t1 - t0, "postprocess": t2 - t1, "total": t2 - t0})
+            timings={"refine": t1 - t0, "result": t2 - t1, "total": t2 - t0})
 
     def screen(self, scan: np.ndarray, places: Sequence[np.ndarray]) -> list[RegistrationResult]:
         """The scan registered against every place (point sets), unrefined, in batches of `batch_size`."""
         screener = Registrar(self._screen_model, self._screen_config, self.registrar.calibration)
         results: list[RegistrationResult] = []
-        for start in range(0, len(places), self.batch_size):
-            results += screener.register_many([(scan, place) for place in places[start: start + self.batch_size]])
+        batch = self.config.batch_size
+        for start in range(0, len(places), batch):
+            results += screener.register_many([(scan, place) for place in places[start: start + batch]])
         return results
 
     def refined(self, scan: np.ndarray, guess: np.ndarray, centre: np.ndarray, radius: float) -> RegistrationResult:
         """The scan registered from `guess` against the map cropped to `crop_radius` x `radius` around
         `centre` (the whole map when the crop holds too few points)."""
-        crop = self.crop(centre, self.crop_radius * radius)
+        crop = self.crop(centre, self.config.crop_radius * radius)
         target = crop if len(crop) >= self.registrar.config.min_points else self.map
         return self.registrar.register(scan, target, guess)
 

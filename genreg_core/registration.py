@@ -67,6 +67,26 @@ GUESS_MARGIN = 0.02
 REFINED_GUESS_MARGIN = 0.05
 
 
+class Stopwatch:
+    """Seconds per named pipeline stage, summed over the stage's runs: `with watch("refine"): ...`."""
+
+    def __init__(self) -> None:
+        self.seconds: dict[str, float] = {}
+
+    @contextmanager
+    def __call__(self, stage: str) -> Iterator[None]:
+        t0 = time.perf_counter()
+        try:
+            yield
+        finally:
+            self.seconds[stage] = self.seconds.get(stage, 0.0) + time.perf_counter() - t0
+
+
+# The stages a result's `timings` name (seconds; a stage that did not run is absent): the per-stage cost table.
+STAGES = ("prepare", "network", "pdsac", "refine", "verify", "modes", "guess", "guard", "fallback", "result",
+          "passes")
+
+
 @contextmanager
 def torch_threads(n: int) -> Iterator[None]:
     """Torch's intra-op thread count at n inside the block (0: as it is), restored after (process-wide)."""
@@ -100,8 +120,8 @@ class RegistrationResult:
     start: str = "genreg"  # what the final pose grew from: "genreg", "initial_guess" (the guess, or the
     # guard's ICP from identity without a guess, overlapped the target better) or "fallback" (FPFH + RANSAC)
     covariance: np.ndarray | None = None  # (6, 6) of the final pose, ROS order (x, y, z, rot x, y, z), m, rad
-    timings: dict[str, float] = field(default_factory=dict)  # seconds per stage and 'total' (the winning pass's
-    # stages; 'total' of every pass)
+    timings: dict[str, float] = field(default_factory=dict)  # seconds per stage (`STAGES`; those that ran) and
+    # 'total'; with more passes, the first pass's stages, 'passes' the other passes' seconds, 'total' of all
     passes: int = 1  # network passes run (`RegistrationConfig.passes`: more only while unsure)
     unconstrained: tuple[str, ...] = ()  # motions the aligned geometry does not constrain, target frame, e.g.
     # "rotation about (0.00, 0.00, 1.00)" (score.unconstrained_directions); empty: fully constrained
@@ -179,19 +199,14 @@ def distinct_poses(T_a: np.ndarray, T_b: np.ndarray, separation_rad: float, scal
     return bool(cos < np.cos(separation_rad) or np.linalg.norm(T_a[:3, 3] - T_b[:3, 3]) > MODE_TRANSLATION * scale)
 
 
-def verified_mode(check: Verifier, target: object, T_best: np.ndarray, start: np.ndarray,
-                  find_modes: Callable[[], np.ndarray], refine_cfg: RefineConfig, below: float = 1.0
-                  ) -> tuple[np.ndarray, float]:
-    """GenReg's refined estimate `T_best` or another PDSAC mode (`find_modes()`: `Estimate.modes`, (K, 4, 4)),
-    whichever is more probably right (`Verifier.probability`). Only when `T_best` scores below `below`: a
-    confident estimate costs nothing more, not even the search for the modes. Each mode other than `T_best`'s `start` is refined coarsely
-    (`COARSE_POINTS` source points, `COARSE_ITERATIONS` iterations), the best of them fully; it replaces
-    `T_best` only if it then verifies better. Without refinement the modes are compared as they are.
-    Returns the pose and its rival's probability: the best of the other distinct poses verified (0 when
-    none was searched)."""
-    best_score = check.probability(T_best)
-    if best_score >= below:
-        return T_best, 0.0
+def verified_mode(check: Verifier, target: object, T_best: np.ndarray, best_score: float, start: np.ndarray,
+                  find_modes: Callable[[], np.ndarray], refine_cfg: RefineConfig) -> tuple[np.ndarray, float]:
+    """GenReg's refined estimate `T_best` (calibrated probability `best_score`) or another PDSAC mode
+    (`find_modes()`: `Estimate.modes`, (K, 4, 4)), whichever is more probably right (`Verifier.probability`).
+    Each mode other than `T_best`'s `start` is refined coarsely (`COARSE_POINTS` source points,
+    `COARSE_ITERATIONS` iterations), the best of them fully; it replaces `T_best` only if it then verifies
+    better. Without refinement the modes are compared as they are. Returns the pose and its rival's
+    probability: the best of the other distinct poses verified."""
     modes = find_modes()
     refining = refine_cfg.method != "none"
     dense_src = check.pair.dense_src
@@ -275,11 +290,13 @@ class Registrar:
         """Stage 10 for one pair: while the first pass is unsure (calibrated, no initial guess, confidence below
         `pdsac.modes_below`), up to `passes - 1` more, each on another subsample with other PDSAC draws (seed +
         j). The result the calibration finds most probably right wins; the most probable other result that is a
-        distinct pose is its rival (its confidence is at most 1 - the rival's). Seconds of every pass count."""
+        distinct pose is its rival (its confidence is at most 1 - the rival's). Seconds of every pass count:
+        the winner's stages are the first pass's, 'passes' the others' seconds."""
         cfg = self.config
         if cfg.passes <= 1 or not self.calibrated or p.init is not None or first.confidence >= cfg.pdsac.modes_below:
             return first
         seeds = [None if cfg.seed is None else cfg.seed + j for j in range(1, cfg.passes)]
+        t0 = time.perf_counter()
         results = [first, *(Registrar(self.model, replace(cfg, seed=seed, passes=1), self.calibration)
                             .register(*pair) for seed in seeds)]
         scores = [self.calibration.probability(feature_vector(r.verification), cfg.refine.method) for r in results]
@@ -287,7 +304,8 @@ class Registrar:
         separation = np.radians(cfg.pdsac.mode_separation)
         rival = max((score for r, score in zip(results, scores, strict=True)
                      if distinct_poses(r.transformation, best.transformation, separation, p.scale)), default=0.0)
-        timings = best.timings | {"total": sum(r.timings["total"] for r in results)}
+        more = time.perf_counter() - t0
+        timings = first.timings | {"passes": more, "total": first.timings["total"] + more}
         return replace(best, confidence=min(best.confidence, 1.0 - rival), timings=timings, passes=len(results))
 
     def prepare(self, source: np.ndarray, target: np.ndarray, initial_guess: np.ndarray | None = None
@@ -323,60 +341,73 @@ class Registrar:
     def refine_and_score(self, p: PreparedPair, est: Estimate, k: int, shared: dict[str, float]
                          ) -> RegistrationResult:
         """Stages 6-9 for pair k of a batch estimate: the candidates, refined and verified, the choice and
-        the result."""
+        the result. `shared`: the batch's network and PDSAC seconds per pair."""
         cfg = model_frame_config(self.config, p.scale)  # distances in this pair's normalised frame
-        t0 = time.perf_counter()
+        watch = Stopwatch()
         check = Verifier(p, est.source_generated[k], est.target_generated[k], cfg.pdsac.tau,  # 7. verify
                          self.calibration if self.calibrated else None, cfg.refine.method, cfg.pdsac.mode_separation)
-        choice = self.choose(p, est, k, check, cfg)  # 6.-8. candidates, refine, verify, choose
-        return self.result(p, est, k, check, choice, shared, t0)  # 9. result
+        choice = self.choose(p, est, k, check, cfg, watch)  # 6.-8. candidates, refine, verify, choose
+        with watch("result"):
+            result = self.result(p, est, k, check, choice)  # 9. result
+        timings = {"prepare": p.seconds, **shared, **watch.seconds}
+        result.timings = timings | {"total": sum(timings.values())}
+        return result
 
-    def choose(self, p: PreparedPair, est: Estimate, k: int, check: Verifier, cfg: RegistrationConfig) -> Choice:
-        """Stages 6 (candidates, refined) to 8 (choose), in the pair's normalised frame `cfg`: GenReg's
-        estimate, refined; PDSAC's other modes when it is unsure (with a calibration and no guess: a guess
-        asks for a local answer); the initial guess, kept or refined (another pose replaces it only with a
-        `GUESS_MARGIN` more fitness); without a guess, the guard's wide ICP from identity when the overlap
-        score is below `refine.guard_below`; the opt-in classical fallback below `fallback.below`. The
-        guard and the fallback replace the pose so far when they seat more of the source within one
-        spacing."""
+    def choose(self, p: PreparedPair, est: Estimate, k: int, check: Verifier, cfg: RegistrationConfig,
+               watch: Stopwatch) -> Choice:
+        """Stages 6 (candidates, refined) to 8 (choose), in the pair's normalised frame `cfg`, each stage's
+        seconds in `watch`: GenReg's estimate, refined ('refine'); its calibrated probability ('verify': with
+        a calibration and no guess, a guess asks for a local answer); PDSAC's other modes only when that is
+        below `pdsac.modes_below` ('modes': a confident estimate costs nothing more); the initial guess, kept
+        or refined ('guess': another pose replaces it only with a `GUESS_MARGIN` more fitness); without a
+        guess, the guard's wide ICP from identity when the overlap score is below `refine.guard_below`
+        ('guard'); the opt-in classical fallback below `fallback.below` ('fallback'). The guard and the
+        fallback replace the pose so far when they seat more of the source within one spacing."""
         refining = cfg.refine.method != "none"
         target = icp_target(p, cfg.refine.method)
         winner = est.transform[k].double().cpu().numpy()
-        T = refine(p.dense_src, target, winner, cfg.refine) if refining else winner
+        with watch("refine"):
+            T = refine(p.dense_src, target, winner, cfg.refine) if refining else winner
         choice = Choice(T, "genreg", float(est.inliers[k].float().mean()))
         if check.calibration is not None and p.init is None:
-            def modes() -> np.ndarray:
-                with torch_threads(cfg.estimate_threads):
-                    return est.modes(k, p.a, p.b, cfg.pdsac)
+            with watch("verify"):
+                score = check.probability(T)
+            if score < cfg.pdsac.modes_below:
+                def modes() -> np.ndarray:
+                    with torch_threads(cfg.estimate_threads):
+                        return est.modes(k, p.a, p.b, cfg.pdsac)
 
-            mode, rival = verified_mode(check, target, T, winner, modes, cfg.refine, cfg.pdsac.modes_below)
-            choice = Choice(mode, "genreg", choice.inlier_ratio if mode is T else check.agreement(mode), rival)
+                with watch("modes"):
+                    mode, rival = verified_mode(check, target, T, score, winner, modes, cfg.refine)
+                choice = Choice(mode, "genreg", choice.inlier_ratio if mode is T else check.agreement(mode), rival)
         if p.init is not None:  # the initial guess: identity in the guess-moved frame
-            kept = np.eye(4)
-            if refining:  # refinement must earn its move away from the user's guess, at one spacing
-                moved = refine(p.dense_src, target, kept, cfg.refine)
-                kept = moved if check.closer(moved, kept, REFINED_GUESS_MARGIN) else kept
-            if check.fitness(kept)[0] + GUESS_MARGIN > check.fitness(choice.transform)[0]:
-                choice = Choice(kept, "initial_guess", check.agreement(kept))
+            with watch("guess"):
+                kept = np.eye(4)
+                if refining:  # refinement must earn its move away from the user's guess, at one spacing
+                    moved = refine(p.dense_src, target, kept, cfg.refine)
+                    kept = moved if check.closer(moved, kept, REFINED_GUESS_MARGIN) else kept
+                if check.fitness(kept)[0] + GUESS_MARGIN > check.fitness(choice.transform)[0]:
+                    choice = Choice(kept, "initial_guess", check.agreement(kept))
         elif refining and overlap_score(check, choice) < cfg.refine.guard_below:
-            guarded = guard_icp(p.dense_src, target, cfg.refine)
-            if check.closer(guarded, choice.transform):
-                choice = Choice(guarded, "initial_guess", check.agreement(guarded))
+            with watch("guard"):
+                guarded = guard_icp(p.dense_src, target, cfg.refine)
+                if check.closer(guarded, choice.transform):
+                    choice = Choice(guarded, "initial_guess", check.agreement(guarded))
         if cfg.fallback.method != "none" and overlap_score(check, choice) < cfg.fallback.below:
-            rescue = fallback(p.dense_src, p.dense_tgt, cfg.fallback)
-            rescue = refine(p.dense_src, target, rescue, cfg.refine) if refining else rescue
-            if check.closer(rescue, choice.transform):
-                choice = Choice(rescue, "fallback", check.agreement(rescue))
+            with watch("fallback"):
+                rescue = fallback(p.dense_src, p.dense_tgt, cfg.fallback)
+                rescue = refine(p.dense_src, target, rescue, cfg.refine) if refining else rescue
+                if check.closer(rescue, choice.transform):
+                    choice = Choice(rescue, "fallback", check.agreement(rescue))
         return choice
 
-    def result(self, p: PreparedPair, est: Estimate, k: int, check: Verifier, choice: Choice,
-               shared: dict[str, float], t0: float) -> RegistrationResult:
+    def result(self, p: PreparedPair, est: Estimate, k: int, check: Verifier, choice: Choice) -> RegistrationResult:
         """Stage 9: the chosen pose's scores, covariance, unconstrained motions and confidence (the calibrated
-        probability, else the overlap score, times the degeneracy factor), in input units."""
+        probability, else the overlap score, times the degeneracy factor), in input units (`timings` are
+        filled in by the caller)."""
         T_n, inlier_ratio = choice.transform, choice.inlier_ratio
         fitness, rmse_n = check.fitness(T_n)
         tight_fitness = check.tight(T_n)
-        t1 = time.perf_counter()
         T = p.to_input_units(T_n)
         origin_n = (T[:3, 3] - p.offset) / p.scale  # the pose's position, normalised frame
         moved = apply_transform(T_n, p.dense_src.astype(np.float64))
@@ -390,13 +421,11 @@ class Registrar:
                                      else confidence(fitness, tight_fitness, inlier_ratio))
         a_gen = p.points_to_input_units(est.source_generated[k].double().cpu().numpy())
         b_gen = p.points_to_input_units(est.target_generated[k].double().cpu().numpy())
-        aligned = p.aligned_source(T)  # float32, one product
-        t2 = time.perf_counter()
         return RegistrationResult(
             transformation=T,
             source_generated=a_gen.astype(np.float32),
             target_generated=apply_transform(np.linalg.inv(p.guess), b_gen).astype(np.float32),
-            aligned_source=aligned,
+            aligned_source=p.aligned_source(T),  # float32, one product
             source_valid_mask=p.src_mask,
             fitness=fitness,
             tight_fitness=tight_fitness,
@@ -407,7 +436,4 @@ class Registrar:
             covariance=covariance,
             unconstrained=unconstrained,
             verification=dict(zip(FEATURES, verification.tolist(), strict=True)),
-            timings={"preprocess": p.seconds, "network": shared["network"], "pdsac": shared["pdsac"],
-                     "refine": t1 - t0, "postprocess": t2 - t1,
-                     "total": p.seconds + shared["network"] + shared["pdsac"] + t2 - t0},
         )

@@ -1,23 +1,28 @@
 """Pipeline stage "verify": how well a candidate pose of one prepared pair explains the clouds.
 
 Every score of a pair is taken in the pair's normalised frame against its one target index
-(`PreparedPair.target_index`): the overlap shares (`score.overlap_fitness`, `score.overlap_shares`), the
-agreement of the network's generated correspondences with the pose (their inlier ratio), and the
-calibrated probability that the pose is right (`genreg_core.confidence`), which chooses among PDSAC's
-modes. Frames and units: `genreg_core.geometry`.
+(`PreparedPair.target_index`): the overlap shares (the share of the source within 1, 2, 3 and 5 target
+spacings; fitness is the share within `score.FITNESS_SPACINGS`, tight fitness within one), the agreement of
+the network's generated correspondences with the pose (their inlier ratio), and the calibrated probability
+that the pose is right (`genreg_core.confidence`), which chooses among the candidates. Each pose is looked
+up in the target index once: every score of it is read from that one query. Frames and units:
+`genreg_core.geometry`.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from functools import cached_property
 
 import numpy as np
 import torch
 
 from genreg_core.confidence import SPACINGS, ConfidenceModel, features
+from genreg_core.geometry import apply_transform
 from genreg_core.prepare import PreparedPair
-from genreg_core.score import TIGHT_SPACINGS, fitness_distance, overlap_fitness, overlap_shares
+from genreg_core.score import FITNESS_SPACINGS, TIGHT_SPACINGS
+
+REMEMBERED_POSES = 8  # a Verifier keeps the squared distances of this many poses (a pair's candidates)
 
 
 @dataclass
@@ -33,20 +38,34 @@ class Verifier:
     calibration: ConfidenceModel | None = None
     refine_method: str = "none"
     separation: float = 15.0  # deg: two poses this far apart in rotation are distinct (`pdsac.mode_separation`)
+    _squared: dict[bytes, np.ndarray] = field(default_factory=dict, repr=False)
 
     @property
     def distance(self) -> float:
         """The fitness radius: `score.FITNESS_SPACINGS` target spacings."""
-        return fitness_distance(self.pair.target_index)
+        return FITNESS_SPACINGS * self.pair.target_index.spacing
+
+    def squared(self, T: np.ndarray) -> np.ndarray:
+        """Squared distance from each refinement-size source point moved by T to its nearest target point:
+        one query of the target index per pose (the last `REMEMBERED_POSES` poses are kept)."""
+        key = np.ascontiguousarray(T, dtype=np.float64).tobytes()
+        found = self._squared.get(key)
+        if found is None:
+            _, found = self.pair.target_index.nearest(apply_transform(T, self.pair.dense_src.astype(np.float64)))
+            if len(self._squared) >= REMEMBERED_POSES:
+                self._squared.pop(next(iter(self._squared)))
+            self._squared[key] = found
+        return found
 
     def fitness(self, T: np.ndarray) -> tuple[float, float]:
-        """(share of the source within the fitness radius, their RMS distance)."""
-        return overlap_fitness(self.pair.dense_src, self.pair.target_index, T, self.distance)
+        """(share of the source within the fitness radius, their RMS distance; 0 when none is within)."""
+        squared = self.squared(T)
+        inliers = squared[squared < self.distance ** 2]
+        return len(inliers) / len(squared), float(np.sqrt(inliers.mean())) if len(inliers) else 0.0
 
     def tight(self, T: np.ndarray) -> float:
         """The share of the source within one target spacing."""
-        p = self.pair
-        return overlap_fitness(p.dense_src, p.target_index, T, TIGHT_SPACINGS * p.target_index.spacing)[0]
+        return float(np.mean(self.squared(T) < (TIGHT_SPACINGS * self.pair.target_index.spacing) ** 2))
 
     def closer(self, T_a: np.ndarray, T_b: np.ndarray, margin: float = 0.0) -> bool:
         """Whether T_a puts a larger share (by more than `margin`) of the source within one spacing (not
@@ -56,8 +75,8 @@ class Verifier:
 
     def shares(self, T: np.ndarray) -> np.ndarray:
         """The shares of the source within each of `confidence.SPACINGS` target spacings."""
-        p = self.pair
-        return overlap_shares(p.dense_src, p.target_index, T, np.multiply(SPACINGS, p.target_index.spacing))
+        limits = np.square(np.multiply(SPACINGS, self.pair.target_index.spacing))
+        return (self.squared(T)[None, :] < limits[:, None]).mean(axis=1)
 
     @cached_property
     def correspondences(self) -> tuple[np.ndarray, np.ndarray]:
@@ -75,8 +94,11 @@ class Verifier:
         residual = np.linalg.norm(src @ T[:3, :3].T + T[:3, 3] - dst, axis=1)
         return float(np.mean(residual < self.tau))
 
+    def features(self, T: np.ndarray, inlier_ratio: float | None = None, constraint: float = 1.0) -> np.ndarray:
+        """The confidence's `FEATURES` of T: its shares, the inlier ratio (default: `agreement`) and the
+        degeneracy factor."""
+        return features(self.shares(T), self.agreement(T) if inlier_ratio is None else inlier_ratio, constraint)
+
     def probability(self, T: np.ndarray, inlier_ratio: float | None = None, constraint: float = 1.0) -> float:
-        """The calibrated probability that T is right (a calibration is needed), from its shares, the
-        inlier ratio (default: `agreement`) and the degeneracy factor."""
-        ratio = self.agreement(T) if inlier_ratio is None else inlier_ratio
-        return self.calibration.probability(features(self.shares(T), ratio, constraint), self.refine_method)
+        """The calibrated probability that T is right (a calibration is needed), from `features`."""
+        return self.calibration.probability(self.features(T, inlier_ratio, constraint), self.refine_method)

@@ -19,6 +19,11 @@ own downsampling, normals and features.
   (point-to-plane, or the scene preset's GICP), object
   model / FPFH + RANSAC <= 0.4, network + PDSAC <= 10 ms at N=512, preprocess + postprocess <= 4 ms on
   the real pair.
+- Per-stage cost (`registration.STAGES`): the scene preset on kidnapped redkitchen pairs (frames 800-999, 10
+  and 60 apart, a random rotation and shift each) and the default object model on ModelNet40 pairs, split into
+  the confident common case (a first answer at or above `pdsac.modes_below`: no modes, no more passes) and the
+  unsure case; medians per stage, and the tight stage of the scene preset's refinement measured as the
+  preset's refinement against the same without it on the real pair.
 - Throughput: `register_many`, pairs per second at batch 1, 8 and 16 (object model on the ModelNet40 pairs,
   scene model on copies of the real pair), and network + PDSAC alone (`measure_throughput`).
 """
@@ -47,7 +52,8 @@ SCENE_FRAMES = (810, 800)  # redkitchen source -> target
 SCENE_VOXEL = 0.025  # m: ICP and small_gicp downsampling
 OBJECT_MODELS = ("modelnet40_dgcnn", "modelnet40_partial", "modelnet40")
 OBJECT_POINTS = 512
-STAGES = ("preprocess", "network", "pdsac", "refine", "postprocess")
+SPLIT = ("prepare", "network", "pdsac", "refine", "result")  # the stages of the API rows (the rest: `verify` etc.)
+COST_PAIRS = 24  # kidnapped redkitchen pairs (gaps 10 and 60) and ModelNet40 pairs of the per-stage cost table
 Figures = dict[str, Any]
 
 
@@ -58,6 +64,7 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     p.add_argument("--baseline-repeats", type=int, default=3, help="baseline runs on the real pair (median)")
     p.add_argument("--object-pairs", type=int, default=20, help="ModelNet40 pairs (median over them)")
     p.add_argument("--batches", type=int, nargs="+", default=[1, 8, 16], help="register_many batch sizes")
+    p.add_argument("--cost-pairs", type=int, default=COST_PAIRS, help="pairs per per-stage cost table")
     p.add_argument("--scene-checkpoint", default="7scenes", help="scene model for the real pair (name or file)")
     p.add_argument("--object-models", nargs="+", default=list(OBJECT_MODELS), help="object models (names or files)")
     p.add_argument("--json", help="also write every figure to this JSON file")
@@ -138,8 +145,41 @@ def scene_figures(args: argparse.Namespace, threads: int) -> Figures:
         "icp_p2plane": baseline_ms(icp_point_to_plane, baseline_pairs, params),
         "small_gicp": baseline_ms(small_gicp_gicp, baseline_pairs, params),
         "fpfh_ransac_icp": baseline_ms(fpfh_ransac_icp, baseline_pairs, params),
+        "api_gicp_one_stage": api_ms(Registrar(plain.model, replace(scene, refine=replace(scene.refine, fine_fraction=1.0)),
+                                               plain.calibration), [pair] * args.repeats),
         "throughput": throughput(plain, [pair], args.batches),
+        "cost": stage_costs(gicp, kidnapped_pairs(args.cost_pairs)),
     }
+
+
+def kidnapped_pairs(count: int) -> list[tuple[Any, Any]]:
+    """`count` kidnapped redkitchen validation pairs, half 10 and half 60 frames apart (`genreg-bench`'s kidnap
+    pairs, seed 0), at pixel stride 2."""
+    import numpy as np
+
+    from genreg_bench.datasets import BenchOptions, kidnap_pairs
+
+    pairs = []
+    for gap in (10, 60):
+        dataset = kidnap_pairs(["redkitchen"], gap)(BenchOptions(frame_stride=2))
+        picks = np.linspace(0, len(dataset) - 1, count // 2).astype(int)
+        pairs += [(dataset[int(i)]["source"], dataset[int(i)]["target"]) for i in picks]
+    return pairs
+
+
+def stage_costs(registrar: Registrar, pairs: Sequence[tuple[Any, Any]]) -> dict[str, Any]:
+    """Median ms per stage (`registration.STAGES`, 0 where a stage did not run) and of the total, for the confident
+    pairs (the first answer at or above `pdsac.modes_below`: neither modes nor more passes ran) and the unsure
+    ones, with their counts."""
+    from genreg_core.registration import STAGES
+
+    registrar.register(*pairs[0])
+    cases: dict[str, list[dict[str, float]]] = {"confident": [], "unsure": []}
+    for source, target in pairs:
+        timings = registrar.register(source, target).timings
+        cases["unsure" if "modes" in timings or "passes" in timings else "confident"].append(timings)
+    return {case: {"pairs": len(runs), **{stage: median_ms([r.get(stage, 0.0) for r in runs]) if runs else 0.0
+                                          for stage in (*STAGES, "total")}} for case, runs in cases.items()}
 
 
 def object_figures(args: argparse.Namespace, threads: int) -> Figures:
@@ -164,6 +204,9 @@ def object_figures(args: argparse.Namespace, threads: int) -> Figures:
         batched = measure_throughput(registrar, dataset, indices, max(args.batches))
         figures[name]["net_pdsac_batch1"] = batched["ms_batch1"]
         figures[name]["net_pdsac_batched"] = batched["ms_per_pair_batched"]
+        if name == args.object_models[0]:
+            figures["cost"] = stage_costs(registrar, [(dataset[i]["source"], dataset[i]["target"]) for i in
+                                                      np.linspace(0, len(dataset) - 1, args.cost_pairs).astype(int)])
     return figures
 
 
@@ -192,7 +235,7 @@ def measure(args: argparse.Namespace) -> Figures:
 def run_workers(args: argparse.Namespace) -> dict[int, Figures]:
     """One subprocess per thread count; their figures by thread count."""
     options = ["--repeats", str(args.repeats), "--baseline-repeats", str(args.baseline_repeats),
-               "--object-pairs", str(args.object_pairs), "--batches", *map(str, args.batches),
+               "--object-pairs", str(args.object_pairs), "--cost-pairs", str(args.cost_pairs), "--batches", *map(str, args.batches),
                "--scene-checkpoint", args.scene_checkpoint, "--object-models", *args.object_models,
                *(["--default-malloc"] if args.default_malloc else [])]
     results = {}
@@ -217,8 +260,8 @@ def table(headers: Sequence[str], rows: Sequence[Sequence[object]]) -> str:
 
 
 def stage_split(api: dict[str, float]) -> str:
-    """'preprocess / network / PDSAC / refine / postprocess' ms of one API row."""
-    return " / ".join(f"{api.get(stage, 0.0):.1f}" for stage in STAGES)
+    """'prepare / network / PDSAC / refine / result' ms of one API row."""
+    return " / ".join(f"{api.get(stage, 0.0):.1f}" for stage in SPLIT)
 
 
 def print_scene(results: dict[int, Figures]) -> None:
@@ -226,8 +269,8 @@ def print_scene(results: dict[int, Figures]) -> None:
     scenes = [results[t]["scene"] for t in threads]
     points = scenes[0]["points"]
     print(f"\nReal pair: redkitchen {SCENE_FRAMES[0]} -> {SCENE_FRAMES[1]}, {points[0]} / {points[1]} points (m), "
-          f"{scenes[0]['checkpoint']} model; ms (API: wall time of `register`, and its stages preprocess / network / PDSAC / refine "
-          "/ postprocess)")
+          f"{scenes[0]['checkpoint']} model; ms (API: wall time of `register`, and its stages prepare / network / PDSAC / refine "
+          "/ result)")
     rows = [
         ["API, no refinement", *(s["api"]["wall"] for s in scenes), *(stage_split(s["api"]) for s in scenes)],
         ["API + point-to-plane", *(s["api_p2plane"]["wall"] for s in scenes),
@@ -241,8 +284,28 @@ def print_scene(results: dict[int, Figures]) -> None:
     for t, s in zip(threads, scenes, strict=True):
         for key, label in (("api", "no refinement"), ("api_p2plane", "point-to-plane"), ("api_gicp", "GICP")):
             total = s[key]["total"]
-            shares = ", ".join(f"{stage} {100 * s[key].get(stage, 0.0) / total:.0f} %" for stage in STAGES)
+            shares = ", ".join(f"{stage} {100 * v / total:.0f} %" for stage, v in s[key].items()
+                               if stage not in ("wall", "total"))
             print(f"stage shares, {t} thread(s), {label}: {shares}")
+        tight = s["api_gicp"]["refine"] - s["api_gicp_one_stage"]["refine"]
+        print(f"tight stage of the scene preset's GICP, {t} thread(s): {tight:.1f} ms (refine {s['api_gicp']['refine']:.1f} "
+              f"with it, {s['api_gicp_one_stage']['refine']:.1f} without)")
+
+
+def print_costs(results: dict[int, Figures]) -> None:
+    """The per-stage cost table: confident and unsure pairs of the scene preset and of the default object model."""
+    from genreg_core.registration import STAGES
+
+    for t, figures in results.items():
+        print(f"\nPer-stage cost, {t} thread(s), median ms per stage (0: the stage did not run); confident: the first "
+              "answer at or above pdsac.modes_below (no modes, no more passes)")
+        rows = []
+        for label, cost in ((f"scene preset, kidnapped redkitchen ({figures['scene']['checkpoint']})", figures["scene"]["cost"]),
+                            (f"objects, ModelNet40 unseen ({object_models(results)[0]})", figures["objects"]["cost"])):
+            for case in ("confident", "unsure"):
+                c = cost[case]
+                rows.append([label, case, c["pairs"], *(c[stage] for stage in (*STAGES, "total"))])
+        print(table(["pairs", "case", "n", *STAGES, "total"], rows))
 
 
 def object_models(results: dict[int, Figures]) -> list[str]:
@@ -276,7 +339,7 @@ def goals(figures: Figures) -> list[tuple[str, float, float]]:
         rows.append((f"{name} / FPFH + RANSAC", objects[name]["wall"] / objects["fpfh_ransac"], 0.4))
         rows.append((f"{name} network + PDSAC, ms", objects[name]["network"] + objects[name]["pdsac"], 10.0))
     api = scene["api"]
-    rows.append(("real pair preprocess + postprocess, ms", api["preprocess"] + api["postprocess"], 4.0))
+    rows.append(("real pair prepare + result, ms", api["prepare"] + api["result"], 4.0))
     return rows
 
 
@@ -313,8 +376,8 @@ def print_header(results: dict[int, Figures], load_start: float) -> None:
 
 
 def report(results: dict[int, Figures], load_start: float) -> None:
-    sections: tuple[Callable[[dict[int, Figures]], None], ...] = (print_scene, print_objects, print_goals,
-                                                                  print_throughput)
+    sections: tuple[Callable[[dict[int, Figures]], None], ...] = (print_scene, print_objects, print_costs,
+                                                                  print_goals, print_throughput)
     print_header(results, load_start)
     for section in sections:
         section(results)
