@@ -16,6 +16,7 @@ frame the network and PDSAC work in.
 from __future__ import annotations
 
 import dataclasses
+import math
 import os
 import types
 import typing
@@ -77,9 +78,10 @@ class Setting:
     start_up: bool = False
 
 
-def settings(cls_or_obj: Any, prefix: str = "") -> tuple[Setting, ...]:
+def settings(cls_or_obj: Any, prefix: str = "", start_up: bool = False) -> tuple[Setting, ...]:
     """Every leaf setting of a config dataclass (or instance: its values become the defaults), nested
-    dataclasses flattened with dotted names ("refine.max_iterations")."""
+    dataclasses flattened with dotted names ("refine.max_iterations"). A group declared `start_up` (or
+    `start_up` given) makes each of its settings start-up."""
     cls = cls_or_obj if isinstance(cls_or_obj, type) else type(cls_or_obj)
     hints = typing.get_type_hints(cls)
     out: list[Setting] = []
@@ -88,12 +90,12 @@ def settings(cls_or_obj: Any, prefix: str = "") -> tuple[Setting, ...]:
             value = f.default if f.default is not dataclasses.MISSING else f.default_factory()  # type: ignore[misc]
         else:
             value = getattr(cls_or_obj, f.name)
-        if dataclasses.is_dataclass(hints[f.name]):
-            out += settings(value, f"{prefix}{f.name}.")
-            continue
         m = f.metadata
+        if dataclasses.is_dataclass(hints[f.name]):
+            out += settings(value, f"{prefix}{f.name}.", start_up or m.get("start_up", False))
+            continue
         out.append(Setting(f"{prefix}{f.name}", value, hints[f.name], m.get("help", ""), m.get("low"),
-                           m.get("high"), m.get("choices"), m.get("start_up", False)))
+                           m.get("high"), m.get("choices"), start_up or m.get("start_up", False)))
     return tuple(out)
 
 
@@ -294,6 +296,71 @@ class RegistrationConfig:
 # datasets and the calibration scripts all start from it.
 SCENE_REGISTRATION = RegistrationConfig(pdsac=SCENE_PDSAC, refine=RefineConfig(method="gicp", max_iterations=20,
                                                                                  fine_fraction=0.25), passes=1)
+
+
+@dataclass(frozen=True)
+class LocalizationConfig:
+    """Localisation of scans in a prior map (`genreg_core.localization.MapLocalizer`; the module docstring
+    describes the search). Lengths "in scan radii" are multiples of a scan's radius: the 90 % quantile of
+    its voxelised points' distances from their centroid, rounded up to a power of `radius_step`. The
+    defaults were chosen on redkitchen training frames 0-799 (MODEL_CARD.md, "Map relocalisation").
+
+    Two thresholds here steer the search's effort, not whether a pose is accepted (the caller decides that
+    from the result's confidence; the node by `min_confidence`): `accept_whole` (without a guess, no place
+    search when the whole map's pose is this confident) and `track_below` (with a guess, GenReg checks a
+    tracked pose this unsure)."""
+
+    voxel_size: float = setting(0.0, "The map's resolution, m, to which each scan is voxelised; 0: auto, the "
+                                "map's median nearest-neighbour spacing.", low=0.0, high=1e3)
+    threads: int = setting(0, "Threads of tracking's GICP and of the place search's k-d tree queries; 0: "
+                           "OMP_NUM_THREADS, else 1.", low=0, high=256)
+    whole_map_ratio: float = setting(1.25, "Without a guess, the whole map's pose stands when the map's extent is "
+                                     "below this times the scan's (0: places are always searched).",
+                                     low=0.0, high=100.0)
+    accept_whole: float = setting(0.9, "Without a guess, the whole map's pose also stands (no place search) when "
+                                  "its confidence reaches this (1: places are searched unless the map is small).",
+                                  low=0.0, high=1.0)
+    place_spacing: float = setting(0.5, "Candidate places are centred on the occupied cells of a grid with this "
+                                   "spacing, in scan radii.", low=0.05, high=10.0)
+    place_radius: float = setting(1.2, "A candidate place is the map within this many scan radii of its centre.",
+                                  low=0.1, high=10.0)
+    place_points: int = setting(4096, "A place keeps at most this many of its map points (a random subset; the "
+                                "model samples its N of them).", low=32, high=100_000_000)
+    radius_step: float = setting(1.25, "Scan radii are rounded up to powers of this, so that scans of similar "
+                                 "size share one grid of places.", low=1.01, high=4.0)
+    screen_model_points: int = setting(256, "Places are screened (registered unrefined, one mode) by the "
+                                       "registrar's weights at this N.", low=32, high=4096)
+    screen_points: int = setting(1000, "Screened places are scored on this many points.", low=16,
+                                 high=1_000_000)
+    batch_size: int = setting(16, "Places registered per batched network call.", low=1, high=1024)
+    candidates: int = setting(3, "The best-screened places verified by registration from their pose against "
+                              "the map around each (crop_radius).", low=1, high=1000)
+    crop_radius: float = setting(1.5, "A verification, or GenReg from a guess, registers against the map within "
+                                 "this many scan radii of the scan's predicted centre.", low=0.1, high=100.0)
+    track_below: float = setting(0.5, "With a guess, a tracked pose (GICP) less confident than this is checked "
+                                 "by GenReg from the guess on a crop; the more confident pose wins (1: always).",
+                                 low=0.0, high=1.0)
+    track_points: int = setting(1500, "Tracking aligns and verifies at most this many of the voxelised scan's "
+                                "points.", low=16, high=10_000_000)
+    track_distance: float = setting(10.0, "Tracking's GICP correspondence distance, in map voxels (voxel_size).",
+                                    low=0.5, high=1000.0)
+    track_iterations: int = setting(30, "Tracking's GICP iterations.", low=1, high=1000)
+    local_radius: float = setting(3.0, "Tracking's local map: the map within this many scan radii of the "
+                                  "guessed scan centre.", low=0.5, high=1000.0)
+    local_keep: float = setting(1.0, "The local map is kept while the guessed scan centre stays within this "
+                                "many scan radii of its centre (below local_radius).", low=0.0, high=1000.0)
+
+    def __post_init__(self) -> None:
+        hints = typing.get_type_hints(type(self))
+        for f in dataclasses.fields(self):  # every field is a number: an integer, or a finite float
+            value, integer = getattr(self, f.name), hints[f.name] is int
+            _check(isinstance(value, int if integer else (int, float)) and not isinstance(value, bool)
+                   and (integer or math.isfinite(value)),
+                   f"localization.{f.name} must be {'an integer' if integer else 'a finite number'}, got {value!r}")
+        check_ranges(self, "localization.")
+        _check(self.local_keep < self.local_radius,
+               f"localization.local_keep ({self.local_keep}) must be below localization.local_radius "
+               f"({self.local_radius})")
 
 
 T = TypeVar("T")

@@ -12,11 +12,11 @@ from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
 from genreg_core.checkpoint import load_checkpoint, resized
-from genreg_core.config import SCENE_MODEL
+from genreg_core.config import SCENE_MODEL, LocalizationConfig
 from genreg_core.data.rgbd import RGBDSequence
 from genreg_core.errors import InvalidPointCloudError, NonFinitePointsError, TooFewPointsError
 from genreg_core.geometry import apply_transform, make_transform
-from genreg_core.localization import PLACE_POINTS, SCREEN_MODEL_POINTS, MapLocalizer
+from genreg_core.localization import MapLocalizer
 from genreg_core.metrics import transform_errors
 from genreg_core.preprocess import voxel_downsample
 
@@ -37,6 +37,13 @@ def fused_map(seq: RGBDSequence, frames: range, stride: int = STRIDE, voxel: flo
 def kitchen() -> tuple[RGBDSequence, MapLocalizer]:
     seq = RGBDSequence.redkitchen()
     return seq, MapLocalizer(fused_map(seq, MAP_FRAMES))
+
+
+def again_of(loc: MapLocalizer, cache_dir=None, **settings) -> MapLocalizer:
+    """Another localiser of `loc`'s map with `loc`'s registrar and resolution (not measured again) and
+    these other settings."""
+    config = LocalizationConfig(**{"voxel_size": loc.voxel_size, **settings})
+    return MapLocalizer(loc.map, registrar=loc.registrar, config=config, cache_dir=cache_dir)
 
 
 def test_scans_between_map_frames_are_placed_without_a_guess(kitchen):
@@ -116,23 +123,24 @@ def test_a_fused_sequence_map_is_open3ds_fusion_of_the_posed_frames(kitchen):
 
 def test_places_are_capped_and_kept_on_disk_by_the_maps_content(kitchen, tmp_path, monkeypatch):
     _, loc = kitchen
-    built = MapLocalizer(loc.map, registrar=loc.registrar, voxel_size=loc.voxel_size, cache_dir=tmp_path).places(0.8)
-    assert max(len(rows) for rows in built) <= PLACE_POINTS and len(list(tmp_path.glob("places-*.npz"))) == 1
-    again = MapLocalizer(loc.map, registrar=loc.registrar, voxel_size=loc.voxel_size, cache_dir=tmp_path)
+    built = again_of(loc, cache_dir=tmp_path).places(0.8)
+    assert max(len(rows) for rows in built) <= loc.config.place_points
+    assert len(list(tmp_path.glob("places-*.npz"))) == 1
+    again = again_of(loc, cache_dir=tmp_path)
     monkeypatch.setattr(again, "build_places", lambda radius: pytest.fail("built again, not read from the cache"))
     cached = again.places(0.8)
     assert len(cached) == len(built) and all(np.array_equal(a, b) for a, b in zip(cached, built, strict=True))
-    moved = MapLocalizer(loc.map + 1.0, registrar=loc.registrar, voxel_size=loc.voxel_size, cache_dir=tmp_path)
+    moved = MapLocalizer(loc.map + 1.0, registrar=loc.registrar, config=LocalizationConfig(voxel_size=loc.voxel_size),
+                         cache_dir=tmp_path)
     moved.places(0.8)  # another map: another file
     assert len(list(tmp_path.glob("places-*.npz"))) == 2
     for path in tmp_path.glob("places-*.npz"):
         path.write_bytes(path.read_bytes()[:100])  # truncated: built again, and written whole
-    rebuilt = MapLocalizer(loc.map, registrar=loc.registrar, voxel_size=loc.voxel_size, cache_dir=tmp_path).places(0.8)
+    rebuilt = again_of(loc, cache_dir=tmp_path).places(0.8)
     assert all(np.array_equal(a, b) for a, b in zip(rebuilt, built, strict=True))
     (tmp_path / "a_file").write_text("")
     with pytest.warns(UserWarning, match="not cached"):  # a cache folder that cannot be made: memory only
-        kept = MapLocalizer(loc.map, registrar=loc.registrar, voxel_size=loc.voxel_size,
-                            cache_dir=tmp_path / "a_file" / "cache").places(0.8)
+        kept = again_of(loc, cache_dir=tmp_path / "a_file" / "cache").places(0.8)
     assert len(kept) == len(built)
 
 
@@ -142,7 +150,7 @@ def test_tracking_in_a_map_larger_than_the_view_uses_a_local_map_and_moves_it(ki
     seq, loc = kitchen
     shift = make_transform(np.eye(3), [20.0, 0.0, 0.0])
     both = MapLocalizer(np.concatenate([loc.map, apply_transform(shift, loc.map)]), registrar=loc.registrar,
-                        voxel_size=loc.voxel_size)
+                        config=LocalizationConfig(voxel_size=loc.voxel_size))
     for truth in (shift @ seq.pose(855), seq.pose(855)):
         result = both.localize(seq.points(855, stride=STRIDE), initial_guess=truth)
         re, te = transform_errors(result.transformation, truth)
@@ -152,9 +160,9 @@ def test_tracking_in_a_map_larger_than_the_view_uses_a_local_map_and_moves_it(ki
 
 def test_places_are_screened_by_the_shipped_weights_at_256_points(kitchen):
     _, loc = kitchen
-    reference, _ = load_checkpoint(SCENE_MODEL, num_points=SCREEN_MODEL_POINTS)
+    reference, _ = load_checkpoint(SCENE_MODEL, num_points=loc.config.screen_model_points)
     screener = loc._screen_model
-    assert screener.config == reference.config and screener.config.num_points == SCREEN_MODEL_POINTS
+    assert screener.config == reference.config and screener.config.num_points == 256
     ours, theirs = screener.state_dict(), reference.state_dict()
     assert ours.keys() == theirs.keys() and all(torch.equal(ours[k], theirs[k]) for k in ours)
     assert resized(loc.registrar.model, loc.registrar.num_points) is loc.registrar.model
@@ -175,17 +183,16 @@ def test_bad_input_raises_the_registrars_named_errors(kitchen):
         MapLocalizer(np.zeros((10, 2)), registrar=loc.registrar)
 
 
-def test_places_cover_the_map_and_voxelize_keeps_one_centroid_per_voxel(kitchen, monkeypatch):
+def test_places_cover_the_map_and_voxelize_keeps_one_centroid_per_voxel(kitchen):
     _, loc = kitchen
     radius = 0.8
     places = loc.places(radius)
     assert places is loc.places(radius)  # cached by radius
-    assert all(loc.registrar.config.min_points <= len(rows) <= PLACE_POINTS for rows in places)
-    monkeypatch.setattr("genreg_core.localization.PLACE_POINTS", len(loc.map))  # whole places: their regions
-    whole = MapLocalizer(loc.map, registrar=loc.registrar, voxel_size=loc.voxel_size).places(radius)
+    assert all(loc.registrar.config.min_points <= len(rows) <= loc.config.place_points for rows in places)
+    whole = again_of(loc, place_points=len(loc.map)).places(radius)  # whole places: their regions
     assert all(len(rows) < len(loc.map) for rows in whole)
     covered = cKDTree(loc.map[np.unique(np.concatenate(whole))])
-    assert covered.query(loc.map, k=1)[0].max() < loc.place_spacing * radius  # no part of the map left out
+    assert covered.query(loc.map, k=1)[0].max() < loc.config.place_spacing * radius  # no part of the map left out
     assert len(whole) == len(places) and all(np.isin(a, b).all() for a, b in zip(places, whole, strict=True))
     points = np.array([[0.01, 0.01, 0.01], [0.03, 0.03, 0.03], [0.11, 0.0, 0.0]])
     assert np.allclose(voxel_downsample(points, 0.1), [[0.02, 0.02, 0.02], [0.11, 0.0, 0.0]])
@@ -195,8 +202,9 @@ def test_candidate_places_find_the_pose_when_the_whole_map_is_not_trusted(kitche
     """`accept_whole=1`: the whole map's pose never stands alone, the candidate places compete."""
     seq, loc = kitchen
     scan = seq.points(925, stride=STRIDE)
-    places = MapLocalizer(loc.map, registrar=loc.registrar, voxel_size=loc.voxel_size, accept_whole=1.0)
-    assert places.extent >= places.whole_map_ratio * places.scan_geometry(voxel_downsample(scan, loc.voxel_size))[2]
+    places = again_of(loc, accept_whole=1.0)
+    scan_extent = places.scan_geometry(voxel_downsample(scan, loc.voxel_size))[2]
+    assert places.extent >= places.config.whole_map_ratio * scan_extent
     result = places.localize(scan)
     re, te = transform_errors(result.transformation, seq.pose(925))
     assert re < 2.0 and te < 0.05 and result.confidence >= 0.5, (re, te, result.confidence)
