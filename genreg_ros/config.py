@@ -1,10 +1,11 @@
 """register_node's settings: the core's config dataclasses plus what only the node has, in one tree.
 
-`NodeConfig` nests the core's `PDSACConfig`, `RefineConfig` and `PreprocessConfig` (their defaults, ranges
-and help live in `genreg_core`), the `RegistrationConfig` scalars (group `registration`) and the node's own
-groups below. A ROS parameter's name is the setting's dotted path (`settings(NodeConfig)`), e.g.
-`refine.max_iterations`; `genreg_ros.params` declares and validates them as ROS parameters (the only
-module that needs rclpy), and the params files are generated from the same list:
+`NodeConfig` nests the core's `PDSACConfig`, `RefineConfig`, `PreprocessConfig` and, in the map group,
+`LocalizationConfig` (`map.localization`; their defaults, ranges and help live in `genreg_core`), the
+`RegistrationConfig` scalars (group `registration`) and the node's own groups below. A ROS parameter's
+name is the setting's dotted path (`settings(NodeConfig)`), e.g. `refine.max_iterations`;
+`genreg_ros.params` declares and validates them as ROS parameters (the only module that needs rclpy),
+and the params files are generated from the same list:
 
     python -m genreg_ros.config --write     # after changing a setting: rewrites the files in config/
     python -m genreg_ros.config --check     # exit 1 if a shipped params file is out of date
@@ -38,6 +39,7 @@ from genreg_core.config import (
     SCENE_MODEL,
     SCENE_REGISTRATION,
     FallbackConfig,
+    LocalizationConfig,
     PDSACConfig,
     RefineConfig,
     RegistrationConfig,
@@ -110,40 +112,58 @@ class SyncParams:
 
 @dataclass(frozen=True)
 class QosParams:
-    """Quality of service of the subscriptions and the outputs."""
+    """Quality of service of the subscriptions and the outputs. The target subscription's reliability is
+    `target_reliability_resolved`: a transient_local target subscription is always reliable, since only a
+    reliable subscription receives what a latched publisher sent before it existed."""
 
-    reliability: str = setting("best_effort", "Reliability of the source subscription (and of the target's "
-                               "with target_reliability same): best_effort (sensor data, accepts both kinds of "
-                               "publisher) or reliable.", choices=RELIABILITIES, start_up=True)
+    reliability: str = setting("best_effort", "Reliability of the source subscription (and of a volatile "
+                               "target's with target_reliability same): best_effort (sensor data, accepts both "
+                               "kinds of publisher) or reliable.", choices=RELIABILITIES, start_up=True)
     depth: int = setting(5, "Subscription history depth.", low=1, high=100, start_up=True)
     publisher_reliability: str = setting("reliable", "Reliability of the output topics.", choices=RELIABILITIES,
                                          start_up=True)
     target_durability: str = setting("volatile", "Durability of the target subscription: transient_local "
-                                     "receives a latched map published before the node started (use it with "
-                                     "a reliable, transient_local publisher).", choices=DURABILITIES,
-                                     start_up=True)
-    target_reliability: str = setting("same", "Reliability of the target subscription: same (as reliability), "
-                                      "best_effort or reliable. A latched map (target_durability "
-                                      "transient_local) needs reliable; the source keeps its own.",
-                                      choices=("same", *RELIABILITIES), start_up=True)
+                                     "receives a latched map published before the node started (a reliable, "
+                                     "transient_local publisher) and makes the subscription reliable.",
+                                     choices=DURABILITIES, start_up=True)
+    target_reliability: str = setting("same", "Reliability of the target subscription: same (reliable with "
+                                      "target_durability transient_local, else as reliability), best_effort or "
+                                      "reliable. best_effort with transient_local is refused (it would never "
+                                      "receive a latched map).", choices=("same", *RELIABILITIES), start_up=True)
 
     def __post_init__(self) -> None:
         check_ranges(self, "qos.")
+        if self.target_durability == "transient_local" and self.target_reliability == "best_effort":
+            raise ConfigError("qos.target_reliability best_effort cannot receive a latched target: with "
+                              "qos.target_durability transient_local use reliable or same")
+
+    @property
+    def target_reliability_resolved(self) -> str:
+        """The target subscription's reliability: target_reliability; for same, reliable with transient_local
+        durability, else the source's `reliability`."""
+        if self.target_reliability != "same":
+            return self.target_reliability
+        return "reliable" if self.target_durability == "transient_local" else self.reliability
 
 
 @dataclass(frozen=True)
 class MapParams:
-    """Map mode: each source scan localised in a prior map (`genreg_ros.mapping`, the core's MapLocalizer)."""
+    """Map mode: each source scan localised in a prior map (`genreg_ros.mapping`, the core's MapLocalizer).
+
+    A scan is a hit when its pose is published (confidence at least `min_confidence`, fitness at least
+    `min_fitness`) and a miss otherwise; `lost_after` misses in a row make tracking lost. The two
+    thresholds of `localization` (`accept_whole`, `track_below`) only steer how hard MapLocalizer searches."""
 
     enabled: bool = setting(False, "Map mode: localise each source scan in the map (target_file, or the newest "
                             "target_cloud, e.g. a latched map) with MapLocalizer: without a guess on the first "
                             "scan, after ~/relocalize and when tracking is lost; otherwise from the last "
                             "accepted pose. The map is not preprocessed; needs workers 1.", start_up=True)
-    lost_confidence: float = setting(0.5, "A scan whose confidence (probability that the pose is right) is "
-                                     "below this, or that is not published, is a miss.", low=0.0, high=1.0)
-    lost_after: int = setting(2, "Tracking is lost after this many misses in a row: the next scan is "
+    lost_after: int = setting(2, "Tracking is lost after this many misses in a row (a miss: a scan whose pose is "
+                              "not published, e.g. its confidence is below min_confidence): the next scan is "
                               "localised without a guess (registration_status localization: lost).",
                               low=1, high=1000)
+    localization: LocalizationConfig = setting(LocalizationConfig(), "MapLocalizer's settings (the core's "
+                                               "defaults), read when the node starts.", start_up=True)
 
     def __post_init__(self) -> None:
         check_ranges(self, "map.")
@@ -204,9 +224,9 @@ class NodeConfig:
     # the confidence is the calibrated probability that the pose is right (RegistrationResult.confidence):
     # publish what is more likely right than wrong, and warn below 80 %
     min_confidence: float = setting(0.5, "Results whose confidence (the calibrated probability that the pose is right) "
-                                    "is lower are not published (counted as failed.low_confidence_rejected). A "
-                                    "checkpoint without a calibration gives an uncalibrated score: lower it there.",
-                                    low=0.0, high=1.0)
+                                    "is lower are not published (counted as failed.low_confidence_rejected; in map "
+                                    "mode a miss). A checkpoint without a calibration gives an uncalibrated score: "
+                                    "lower it there.", low=0.0, high=1.0)
     warn_confidence: float = setting(0.8, "Results with lower confidence are published, with a throttled "
                                      "warning, a low_confidence count and a WARN diagnostics status.",
                                      low=0.0, high=1.0)
@@ -222,6 +242,9 @@ class NodeConfig:
             raise ConfigError("target_file needs target_frame (the file has no frame id)")
         if self.map.enabled and self.workers != 1:
             raise ConfigError(f"map.enabled needs workers 1 (scans are localised in the node's process), got {self.workers}")
+        if self.map.enabled and self.map.localization.place_points < self.registration.min_points:
+            raise ConfigError(f"map.localization.place_points ({self.map.localization.place_points}) must be at "
+                              f"least registration.min_points ({self.registration.min_points})")
 
     def registration_config(self) -> RegistrationConfig:
         """The core's RegistrationConfig: the groups pdsac, refine and fallback, and the `registration` scalars."""

@@ -6,8 +6,9 @@ which the next scan gets:
 - `global`: no pose is known (start-up, a new map frame, `~/relocalize`, `~/reset`, a time jump): the next
   scan is localised without a guess;
 - `tracking`: the last accepted pose is the guess of the next scan;
-- `lost`: `map.lost_after` scans in a row missed (not published, or confidence below
-  `map.lost_confidence`, or failed): the next scan is localised without a guess, as in `global`.
+- `lost`: `map.lost_after` scans in a row missed (a miss: no pose published, i.e. the confidence is
+  below `min_confidence`, the fitness below `min_fitness`, or it failed): the next scan is localised
+  without a guess, as in `global`.
 A guess from a topic (`initialpose`, `initial_guess`) is used in every state (`genreg_ros.tracking`).
 A hit in any state leads to `tracking`; misses while `global` or `tracking` count towards `lost`.
 
@@ -66,7 +67,7 @@ class Localization:
             return Step(TRACKING if self._state == TRACKING else GLOBAL, self._generation)
 
     def update(self, step: Step, hit: bool, lost_after: int | None = None) -> str:
-        """Record the outcome of a scan localised as `step` (hit: published with enough confidence) and
+        """Record the outcome of a scan localised as `step` (hit: its pose was published) and
         return the state it is reported in. `lost_after` (None: the constructor's) may change at run time."""
         with self._lock:
             if lost_after is not None:

@@ -393,8 +393,8 @@ class RegisterNode(LifecycleNode):
 
     @staticmethod
     def _target_reliability(c: NodeConfig) -> str:
-        """The target subscription's reliability: qos.target_reliability, or qos.reliability for same."""
-        return c.qos.reliability if c.qos.target_reliability == "same" else c.qos.target_reliability
+        """The target subscription's reliability (`QosParams.target_reliability_resolved`)."""
+        return c.qos.target_reliability_resolved
 
     def _cloud_subscription(self, topic: str, qos: QoSProfile):
         """The `<topic>_cloud` subscription (serialised messages), counting the messages the middleware
@@ -682,7 +682,7 @@ class RegisterNode(LifecycleNode):
         t2 = time.perf_counter()
         verdict = judge(result, c)
         if step is not None:
-            hit = verdict.publish and result.confidence >= c.map.lost_confidence
+            hit = verdict.publish  # a miss: not published (min_confidence, min_fitness)
             verdict = replace(verdict, localization=self._map_outcome(c, step, hit))
         header = Header(stamp=Time(nanoseconds=pair.source_stamp).to_msg(), frame_id=pair.target.frame)
         latency = time.monotonic() - max(pair.source.received, pair.target.received)
@@ -716,7 +716,7 @@ class RegisterNode(LifecycleNode):
         cache = None if not c.target_file else Path(c.target_file).expanduser().with_name(
             Path(c.target_file).name + ".genreg-cache")  # a map file's candidate places, kept beside it
         try:
-            localizer = MapLocalizer(map_points, registrar=registrar, cache_dir=cache)
+            localizer = MapLocalizer(map_points, registrar=registrar, config=c.map.localization, cache_dir=cache)
         except GenRegError as exc:
             self._fail(failure_reason(exc), f"the map cannot be used: {exc}")
             return None

@@ -156,7 +156,8 @@ def build(values: dict[str, Any], where: str = "") -> NodeConfig:
 
 
 # Parameters the node no longer has -> what replaced them (said instead of a guess at a similar name).
-REMOVED = {"sync.time_jump": "removed: a stamp more than sync.slop older than the newest of its topic resets pairing"}
+REMOVED = {"sync.time_jump": "removed: a stamp more than sync.slop older than the newest of its topic resets pairing",
+           "map.lost_confidence": "removed: a scan is a miss when its pose is not published (min_confidence)"}
 
 
 def unknown_text(name: str) -> str:

@@ -10,10 +10,18 @@ import sys
 import typing
 from pathlib import Path
 
+import numpy as np
 import pytest
 import yaml
 
-from genreg_core.config import SCENE_REGISTRATION, PDSACConfig, RefineConfig, RegistrationConfig, settings
+from genreg_core.config import (
+    SCENE_REGISTRATION,
+    LocalizationConfig,
+    PDSACConfig,
+    RefineConfig,
+    RegistrationConfig,
+    settings,
+)
 from genreg_core.errors import ConfigError
 from genreg_core.preprocess import PreprocessConfig
 from genreg_ros import config, params
@@ -212,3 +220,71 @@ def test_node_name_from_arguments():
     assert params.node_fqn(argv, "register_node") == "/a/b/n"  # rcl takes the first __ns
     assert params.node_fqn(["node"], "register_node") == "/register_node"
     assert params.params_files(argv) == ["f.yaml"] and params.params_files(["node", "--params-file", "x"]) == []
+
+
+
+def test_every_map_localisation_setting_is_a_start_up_parameter_with_the_cores_default_range_and_help(tmp_path):
+    core = {s.name: s for s in settings(LocalizationConfig)}
+    mine = {s.name.removeprefix("map.localization."): s for s in SETTINGS if s.name.startswith("map.localization.")}
+    assert mine.keys() == core.keys() and len(core) == 19
+    for name, s in mine.items():
+        c = core[name]
+        assert (s.default, s.type, s.help, s.low, s.high) == (c.default, c.type, c.help, c.low, c.high), name
+        assert s.start_up and s.low is not None and s.high is not None, name  # read once; every one has a range
+    assert NodeConfig().map.localization == LocalizationConfig()
+    assert params.descriptor(params.BY_NAME["map.localization.candidates"]).read_only
+    path = tmp_path / "p.yaml"  # one threshold per meaning: a miss is a scan whose pose is not published
+    path.write_text("/**:\n  ros__parameters:\n    map:\n      lost_confidence: 0.5\n")
+    with pytest.raises(params.ParamError, match=r"'map.lost_confidence' \(removed: a scan is a miss when its pose"):
+        params.check_params_file(str(path), "/register_node")
+
+
+@pytest.fixture
+def rcl_context():
+    import rclpy
+
+    ctx = rclpy.Context()
+    rclpy.init(context=ctx)
+    yield ctx
+    rclpy.shutdown(context=ctx)
+
+
+def _declared(ctx, **overrides) -> NodeConfig:
+    """The NodeConfig `params.declare` gives a node started with these parameters (dots written as __)."""
+    from rclpy.node import Node
+    from rclpy.parameter import Parameter
+
+    node = Node("genreg_params_test", context=ctx, parameter_overrides=[
+        Parameter(k.replace("__", "."), value=v) for k, v in overrides.items()])
+    try:
+        return params.declare(node)
+    finally:
+        node.destroy_node()
+
+
+def test_a_map_setting_given_as_a_ros_parameter_reaches_the_map_localizer(rcl_context, untrained_checkpoint):
+    from genreg_core.localization import MapLocalizer
+    from genreg_core.registration import Registrar
+
+    c = _declared(rcl_context, map__enabled=True, map__localization__voxel_size=0.05,
+                  map__localization__candidates=5, map__localization__track_below=0.7)
+    assert c.map.localization == LocalizationConfig(voxel_size=0.05, candidates=5, track_below=0.7)
+    points = np.random.default_rng(0).uniform(0.0, 2.0, (2000, 3))
+    # what the node builds in map mode (genreg_ros.node: MapLocalizer(..., config=c.map.localization))
+    loc = MapLocalizer(points, registrar=Registrar.from_checkpoint(str(untrained_checkpoint), c.registration_config()),
+                       config=c.map.localization)
+    assert loc.config.candidates == 5 and loc.config.track_below == 0.7 and loc.voxel_size == 0.05
+    assert params.ros_values(c)["map.localization.candidates"] == 5
+
+
+@pytest.mark.parametrize(("overrides", "text"), [
+    ({"map__localization__place_spacing": 50.0}, "map.localization.place_spacing"),
+    ({"map__localization__candidates": 0}, "map.localization.candidates"),
+    ({"map__localization__local_keep": 4.0}, "localization.local_keep (4.0) must be below localization.local_radius"),
+    ({"map__enabled": True, "map__localization__place_points": 40, "registration__min_points": 64},
+     "map.localization.place_points (40) must be at least registration.min_points (64)"),
+])
+def test_out_of_range_map_settings_are_refused_with_one_line(rcl_context, overrides, text):
+    with pytest.raises(params.ParamError, match=re.escape(text)) as error:
+        _declared(rcl_context, **overrides)
+    assert "\n" not in str(error.value), str(error.value)

@@ -160,7 +160,7 @@ class MapDriver:
                                                                           parameter=False))
         result = self.loc.localize(pose, initial_guess=start.T)
         verdict = judge(result, MAP)
-        hit = verdict.publish and result.confidence >= MAP.map.lost_confidence
+        hit = verdict.publish  # as the node: a miss is a scan whose pose is not published
         if verdict.publish:
             self.tracker.record(result.transformation, self.stamp, generation, now)
         return self.state.update(step, hit), verdict.publish
