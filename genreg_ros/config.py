@@ -170,6 +170,22 @@ class MapParams:
 
 
 @dataclass(frozen=True)
+class BudgetParams:
+    """The latency budget (`genreg_ros.budget`): when the node falls behind, a pair does less work."""
+
+    latency: float = setting(0.0, "Latency budget of a pair, s (from the arrival of its later cloud to its result): "
+                             "a pair whose wait plus the expected seconds of a full registration exceed it is "
+                             "registered with the light settings (no PDSAC modes, no more passes, no guard ICP, "
+                             "no tight refinement stage, light_points refinement points), counted as light in "
+                             "/diagnostics and its registration_status; 0: off. Not used in map mode.", low=0.0, high=60.0)
+    light_points: int = setting(1500, "Refinement (and verification) points of a light registration.", low=16,
+                                high=1_000_000)
+
+    def __post_init__(self) -> None:
+        check_ranges(self, "budget.")
+
+
+@dataclass(frozen=True)
 class DiagnosticsParams:
     """The /diagnostics status."""
 
@@ -203,6 +219,7 @@ class NodeConfig:
     sync: SyncParams = setting(SyncParams(), "Stamp pairing.")
     qos: QosParams = setting(QosParams(), "Quality of service.")
     map: MapParams = setting(MapParams(), "Map mode (relocalisation in a prior map).")
+    budget: BudgetParams = setting(BudgetParams(), "The latency budget under load.")
     source_frame: str = setting("", "Source frame id; empty: the source header's frame_id.")
     target_frame: str = setting("", "Target frame id; empty: the target header's frame_id.")
     max_points: int = setting(1_000_000, "Clouds with more points (width * height) are dropped.", low=1,
@@ -294,11 +311,12 @@ CONFIG_DIR = Path(__file__).resolve().parent.parent / "config"
 # Scenes: the scene model and the core's scene preset (genreg_core.config.SCENE_REGISTRATION: small_gicp's
 # GICP and the scene PDSAC settings, MODEL_CARD.md); two workers: a 30 Hz depth camera's full-resolution
 # pairs need both cores (scripts/bench_node.py soak)
+# The scene profile streams depth frames: a 75 ms latency budget (light registrations when the node falls behind)
 SCENE_OVERRIDES: dict[str, Any] = {"model.checkpoint": SCENE_MODEL, **registration_overrides(SCENE_REGISTRATION),
-                                   "workers": 2}
+                                   "workers": 2, "budget.latency": 0.075}
 # Map mode: the scene profile localising scans in a prior map, in the node's process (workers 1); the map
 # latched (reliable, transient_local), the camera best effort (SensorDataQoS)
-MAP_OVERRIDES: dict[str, Any] = {**SCENE_OVERRIDES, "workers": 1, "map.enabled": True,
+MAP_OVERRIDES: dict[str, Any] = {**SCENE_OVERRIDES, "workers": 1, "map.enabled": True, "budget.latency": 0.0,
                                  "qos.target_reliability": "reliable", "qos.target_durability": "transient_local"}
 PROFILES: dict[str, tuple[str, dict[str, Any]]] = {
     "genreg.yaml": (f"depth-camera and indoor scenes (the scene model {SCENE_MODEL})", SCENE_OVERRIDES),

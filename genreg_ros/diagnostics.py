@@ -29,7 +29,7 @@ class Stats:
         self.lost: Counter[str] = Counter()  # topic -> messages the middleware reported lost
         self.dropped: Counter[str] = Counter()
         self.failed: Counter[str] = Counter()
-        self.events: Counter[str] = Counter()  # time_jump, reset; map mode: relocalize, tracking_lost
+        self.events: Counter[str] = Counter()  # time_jump, reset, light; map mode: relocalize, tracking_lost
         self.registered = 0
         self.low_confidence = 0  # registered and published, but below warn_confidence
         self.paired = 0  # pairs formed by the sync; each is registered, failed, dropped or superseded
@@ -158,12 +158,14 @@ def build_status(s: Snapshot, now: float, name: str, hardware_id: str, stale_tim
         "lost.source": s.lost[SOURCE],  # lost by the middleware (QoS event message_lost): never received
         "lost.target": s.lost[TARGET],
         "paired": s.paired,
+        "light": s.events["light"],  # registered with the light settings under the latency budget (budget.latency)
         "time_jump": s.events["time_jump"],
         "reset": s.events["reset"],
         **({"localization": localization, "relocalize": s.events["relocalize"],
             "tracking_lost": s.events["tracking_lost"]} if localization else {}),
         "latency_ms.last": 1e3 * s.latency[-1] if s.latency else float("nan"),
         "latency_ms.median": _median_ms(s.latency),
+        "latency_ms.p95": 1e3 * float(np.percentile(s.latency, 95)) if s.latency else float("nan"),
         "overhead_ms.median": _median_ms(s.overhead),
         "callback_ms.median": _median_ms(s.callback),
         **{f"dropped.{k}": n for k, n in sorted(s.dropped.items())},

@@ -79,6 +79,7 @@ from genreg_core.errors import GenRegError, TooFewPointsError
 from genreg_core.memory import retain_freed_memory
 from genreg_core.preprocess import PreprocessConfig, preprocess
 from genreg_ros import params
+from genreg_ros.budget import LatencyBudget
 from genreg_ros.config import NodeConfig
 from genreg_ros.conversions import matrix_to_msg, matrix_to_pose_msg, msg_to_matrix, stamp_error, stamp_ns
 from genreg_ros.diagnostics import Stats, build_status
@@ -283,6 +284,7 @@ class RegisterNode(LifecycleNode):
         self._sync = self._new_sync(c)
         self._newest: dict[str, int | None] = {SOURCE: None, TARGET: None}
         self._tracker = Tracker()  # topic guesses and the last result
+        self._budget = LatencyBudget()  # full or light registration per pair (budget.latency)
         self._map_state = Localization(c.map.lost_after)  # map mode: global, tracking or lost
         self._localizer: tuple[np.ndarray, Any, str] | None = None  # map mode: (map points, MapLocalizer, frame)
         self._target_cache: tuple[Any, np.ndarray, PreprocessConfig] | None = None
@@ -449,7 +451,9 @@ class RegisterNode(LifecycleNode):
     # ----------------------------------------------------------------- start-up
     def _load_registrars(self, c: NodeConfig) -> list[Any]:
         """One registrar per worker: the core's Registrar in this process (workers 1), else a worker process
-        each (started side by side, after this process has compiled the kernels). If loading fails, on_configure closes the processes started."""
+        each (started side by side, after this process has compiled the kernels), each warmed up with a synthetic
+        pair (`Registrar.warm_up`) before the node activates. If loading fails, on_configure closes the processes
+        started."""
         from genreg_core import kernels
         from genreg_core.registration import Registrar
 
@@ -464,8 +468,11 @@ class RegisterNode(LifecycleNode):
                 r.start()
             for r in self._registrars:
                 r.wait_ready()
-            return self._registrars or [Registrar.from_checkpoint(c.model.checkpoint, config=c.registration_config(),
-                                                                  num_points=num_points)]
+            if self._registrars:
+                return self._registrars
+            local = Registrar.from_checkpoint(c.model.checkpoint, config=c.registration_config(), num_points=num_points)
+            local.warm_up()  # as each worker process does before it reports ready
+            return [local]
         except GenRegError as exc:
             raise StartupError(str(exc)) from None
         except (RuntimeError, AssertionError, OSError) as exc:  # e.g. a cuda device on a CPU-only torch
@@ -668,13 +675,14 @@ class RegisterNode(LifecycleNode):
             step, start = self._map_start(c, pair)
             target_points = prepared.target_points
             t1 = time.perf_counter()
-            result = self._localize(localizer, prepared.source_points, start.T)
+            result, light = self._localize(localizer, prepared.source_points, start.T), False
         else:
             generation, step = self._tracker.generation, None
             start = self._start(c, pair)
             target_points = self._crop(c, prepared, start.T)
             t1 = time.perf_counter()
-            result = self._register(registrar, c, prepared.source_points, target_points, start.T)
+            age = time.monotonic() - max(pair.source.received, pair.target.received)
+            result, light = self._register(registrar, c, prepared.source_points, target_points, start.T, age)
         if result is None:
             if step is not None:
                 self._map_outcome(c, step, hit=False)
@@ -686,7 +694,7 @@ class RegisterNode(LifecycleNode):
             verdict = replace(verdict, localization=self._map_outcome(c, step, hit))
         header = Header(stamp=Time(nanoseconds=pair.source_stamp).to_msg(), frame_id=pair.target.frame)
         latency = time.monotonic() - max(pair.source.received, pair.target.received)
-        status = self._result_status(result, header, pair.source.frame, start.origin, latency, verdict)
+        status = self._result_status(result, header, pair.source.frame, start.origin, latency, verdict, light)
         if not verdict.publish:
             self._fail(verdict.reason, verdict.why)
             return _Publication(status)
@@ -797,15 +805,23 @@ class RegisterNode(LifecycleNode):
         return prepared.target_points
 
     def _register(self, registrar: Any, c: NodeConfig, source: np.ndarray, target: np.ndarray,
-                  guess: np.ndarray | None) -> Any:
-        """The registrar's result under the settings in force; None if registration failed (counted)."""
-        if registrar.config != (cfg := c.registration_config()):
+                  guess: np.ndarray | None, age: float) -> tuple[Any, bool]:
+        """The registrar's result under the settings in force, light when the pair (`age` s after its later
+        cloud arrived) would miss the latency budget (`genreg_ros.budget`; counted), and whether it was light;
+        None if registration failed (counted)."""
+        light, cfg = self._budget.plan(age, c.registration_config(), c.budget.latency, c.budget.light_points)
+        if registrar.config != cfg:
             registrar.config = cfg
+        if light:
+            self._stats.event("light")
+        t0 = time.perf_counter()
         try:
-            return registrar.register(source, target, initial_guess=guess)
+            result = registrar.register(source, target, initial_guess=guess)
         except GenRegError as exc:
             self._fail(failure_reason(exc), f"registration failed: {exc}")
-            return None
+            return None, light
+        self._budget.record(light, time.perf_counter() - t0)
+        return result, light
 
     def _publish_loop(self) -> None:
         while (job := self._outbox.get()) is not None:
@@ -850,7 +866,7 @@ class RegisterNode(LifecycleNode):
                        job.low_confidence)
 
     def _result_status(self, result: Any, header: Header, source_frame: str, guess_origin: str, latency: float,
-                       verdict: Verdict) -> DiagnosticArray:
+                       verdict: Verdict, light: bool = False) -> DiagnosticArray:
         """The per-result `registration_status` message (header: the source stamp and the target frame); its
         level and message are the verdict's (`genreg_ros.policy`); in map mode it says the localisation state."""
         values = {
@@ -860,6 +876,7 @@ class RegisterNode(LifecycleNode):
             "start": result.start, "initial_guess": guess_origin, "published": str(verdict.publish).lower(),
             "source_frame": source_frame, "target_frame": header.frame_id, "latency_ms": f"{1e3 * latency:.1f}",
             "degenerate": str(verdict.degenerate).lower(), "unconstrained": "; ".join(verdict.unconstrained),
+            "budget": "light" if light else "full",
         }
         if verdict.localization:
             values["localization"] = verdict.localization

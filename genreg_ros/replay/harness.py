@@ -302,10 +302,10 @@ class Client:
 
 
 def node_counters(values: dict[str, str]) -> dict[str, int]:
-    """The counters (registered, paired, received.*, dropped.*, failed.*) of a /diagnostics status's values."""
+    """The counters (registered, paired, light, received.*, dropped.*, failed.*) of a /diagnostics status's values."""
     out = {}
     for key, value in values.items():
-        if key in ("registered", "paired") or key.startswith(("dropped.", "failed.", "received.")):
+        if key in ("registered", "paired", "light") or key.startswith(("dropped.", "failed.", "received.")):
             try:
                 out[key] = int(value)
             except ValueError:
