@@ -9,7 +9,8 @@ camera that tracks, is kidnapped, looks at another building and comes back; each
 (its serialised bytes) by a best-effort publisher (SensorDataQoS, as a camera driver's), one at a time. What is checked: the first scan
 is placed without a guess (`localization: global`), the next ones track, a kidnapped camera is relocalised
 within three scans, an off-map scan (SUN3D) publishes no pose and tracking turns lost, `~/relocalize`
-localises the next scan without a guess, and RViz's `initialpose` is the next scan's guess.
+localises the next scan without a guess, and RViz's `initialpose` is the next scan's guess. Another test
+starts the node in this process with `map.localization` parameters and checks that its MapLocalizer uses them.
 """
 
 from __future__ import annotations
@@ -23,8 +24,18 @@ from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy, qos_profi
 from sensor_msgs.msg import PointCloud2
 from std_msgs.msg import Header
 from std_srvs.srv import Trigger
-from test_node import diag_values, errors, node_process, stamp, wait_subscribed
+from test_node import (
+    SMALL_T,
+    diag_values,
+    errors,
+    make_pair,
+    node_process,
+    running_node,
+    stamp,
+    wait_subscribed,
+)
 
+from genreg_core.config import LocalizationConfig
 from genreg_core.data.rgbd import RGBDSequence
 from genreg_core.geometry import apply_transform
 from genreg_ros.bag.reader import BagData, read_bag
@@ -184,3 +195,20 @@ def test_scans_are_localised_tracked_relocalised_and_off_map_scans_publish_nothi
     assert time.monotonic() - t0 < 60.0
     text = log.read_text()
     assert "tracking lost" in text and "relocalize (relocalize service)" in text, text[-3000:]
+
+
+def test_map_settings_given_as_parameters_are_the_map_localizers(ros_namespace, untrained_checkpoint, capfd):
+    """`map.localization.*` reach the node's MapLocalizer: a map resolution given as a parameter is the one the
+    scans are voxelised to (the node logs it when the map is ready), not the map's measured spacing (0.056 m)."""
+    settings = {"map.enabled": True, "map.localization.voxel_size": 0.15, "map.localization.candidates": 2}
+    with running_node(f"{ros_namespace}/map_settings", untrained_checkpoint, **settings) as h:
+        assert h.node.config.map.localization == LocalizationConfig(voxel_size=0.15, candidates=2)
+        source, target, _ = make_pair(SMALL_T, 200.0, n=2000)
+        wait_subscribed(h, h.pub_source, h.pub_target)
+        h.pub_target.publish(target)
+        h.wait(lambda: any(diag_values(s).get("received.target") == "1" for m in h.diagnostics for s in m.status),
+               15.0, "the map received")
+        h.pub_source.publish(source)
+        status = diag_values(h.result_for(source.header, timeout=60.0))
+        assert status["localization"] == "global" and status["target_frame"] == target.header.frame_id, status
+    assert "map of 2000 points in frame 'map' ready (resolution 0.15 m)" in capfd.readouterr().err
