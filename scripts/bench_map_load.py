@@ -68,6 +68,7 @@ def child_load(args: argparse.Namespace) -> dict[str, float]:
     """One load in this process (the `--child` side)."""
     import torch
 
+    from genreg_core.config import LocalizationConfig
     from genreg_core.localization import MapLocalizer
     from genreg_core.registration import Registrar
 
@@ -77,7 +78,7 @@ def child_load(args: argparse.Namespace) -> dict[str, float]:
     t0 = time.perf_counter()
     points = np.asarray(o3d.io.read_point_cloud(str(path)).points)
     t1 = time.perf_counter()
-    loc = MapLocalizer(points, registrar=registrar, voxel_size=0.02, threads=args.threads,
+    loc = MapLocalizer(points, registrar=registrar, config=LocalizationConfig(voxel_size=0.02, threads=args.threads),
                        cache_dir=path.with_name(path.name + ".genreg-cache"))
     t2 = time.perf_counter()
     scan = seq.points(SCAN, stride=4)

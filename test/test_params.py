@@ -69,7 +69,8 @@ def test_scene_file_is_for_the_scene_model_and_objects_file_for_the_object_model
 def test_map_file_is_the_scene_file_in_map_mode_with_a_latched_map_and_a_sensor_data_camera():
     scene, mapped = defaults("genreg.yaml"), defaults("genreg_map.yaml")
     differ = {k for k in scene if scene[k] != mapped[k]}
-    assert differ == {"workers", "map.enabled", "qos.target_reliability", "qos.target_durability"}
+    assert differ == {"workers", "map.enabled", "qos.target_reliability", "qos.target_durability", "budget.latency"}
+    assert mapped["budget.latency"] == 0.0  # the latency budget is not used in map mode
     assert mapped["map.enabled"] and mapped["workers"] == 1
     # the map latched (reliable + transient_local), the camera best effort (accepts SensorDataQoS publishers)
     assert (mapped["qos.target_reliability"], mapped["qos.target_durability"]) == ("reliable", "transient_local")
@@ -101,7 +102,7 @@ def test_scene_file_registers_with_the_cores_scene_preset():
     assert scene.registration_config() == SCENE_REGISTRATION
     assert scene.model.checkpoint == "7scenes" and scene.workers == 2
     assert set(SCENE_OVERRIDES) == {"model.checkpoint", "workers", "refine.method", "refine.fine_fraction",
-                                    "pdsac.sample_size", "registration.passes"}
+                                    "pdsac.sample_size", "registration.passes", "budget.latency"}
 
 
 def test_registration_scalars_are_the_cores_scalar_settings():
