@@ -148,7 +148,7 @@ class QosParams:
 
 @dataclass(frozen=True)
 class MapParams:
-    """Map mode: each source scan localised in a prior map (`genreg_ros.mapping`, the core's MapLocalizer).
+    """Map mode: each source scan localised in a prior map (`genreg_ros.map_state`, the core's MapLocalizer).
 
     A scan is a hit when its pose is published (confidence at least `min_confidence`, fitness at least
     `min_fitness`) and a miss otherwise; `lost_after` misses in a row make tracking lost. The two

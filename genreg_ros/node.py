@@ -25,7 +25,7 @@ mode: localise the next scan without a guess).
 Map mode (`map.enabled`): the target (`target_file`, or the newest `target_cloud`, e.g. a latched map) is a
 prior map and each source scan is localised in it with the core's MapLocalizer (in the node's process,
 `workers` 1): without a guess on the first scan, after `~/relocalize` and when tracking is lost, else from
-the last accepted pose or a topic guess (`genreg_ros.mapping`: global -> tracking -> lost -> global);
+the last accepted pose or a topic guess (`genreg_ros.map_state`: global -> tracking -> lost -> global);
 `registration_status` carries the state (`localization`). The map is not preprocessed; the scans are.
 
 Lifecycle: configure loads the model (and the target file) and creates the publishers and the worker;
@@ -83,7 +83,7 @@ from genreg_ros.budget import LatencyBudget
 from genreg_ros.config import NodeConfig
 from genreg_ros.conversions import matrix_to_msg, matrix_to_pose_msg, msg_to_matrix, stamp_error, stamp_ns
 from genreg_ros.diagnostics import Stats, build_status
-from genreg_ros.mapping import LOST, TRACKING, Localization, Step, scan_start
+from genreg_ros.map_state import LOST, TRACKING, Localization, Step, scan_start
 from genreg_ros.pointcloud2 import (
     PointCloud2Error,
     from_cdr,

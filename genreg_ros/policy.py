@@ -27,7 +27,7 @@ class Verdict:
     why: str  # one line: why it was rejected ("" when published)
     low_confidence: bool  # published, below warn_confidence
     unconstrained: tuple[str, ...]  # the directions the geometry leaves free (degenerate when any)
-    localization: str = ""  # map mode: the scan's state (global, tracking, lost; genreg_ros.mapping), else ""
+    localization: str = ""  # map mode: the scan's state (global, tracking, lost; genreg_ros.map_state), else ""
 
     @property
     def degenerate(self) -> bool:

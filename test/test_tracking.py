@@ -1,5 +1,5 @@
 """Initial guesses and tracking of register_node (`genreg_ros.tracking`) and map mode's localisation state
-(`genreg_ros.mapping`): pure, no rclpy."""
+(`genreg_ros.map_state`): pure, no rclpy."""
 
 from __future__ import annotations
 
@@ -12,9 +12,9 @@ import numpy as np
 import pytest
 
 from genreg_core.errors import ConfigError
-from genreg_ros import mapping
+from genreg_ros import map_state
 from genreg_ros.config import MapParams, NodeConfig
-from genreg_ros.mapping import GLOBAL, LOST, Localization, scan_start
+from genreg_ros.map_state import GLOBAL, LOST, Localization, scan_start
 from genreg_ros.policy import judge
 from genreg_ros.tracking import Tracker
 
@@ -31,7 +31,7 @@ TRACKING = NodeConfig(initial_guess_timeout=5.0, use_last_result_as_guess=True, 
 
 
 def test_policy_and_tracking_need_no_rclpy():
-    code = ("import sys, genreg_ros.policy, genreg_ros.tracking, genreg_ros.mapping\n"
+    code = ("import sys, genreg_ros.policy, genreg_ros.tracking, genreg_ros.map_state\n"
             "assert not [m for m in sys.modules if m.split('.')[0] == 'rclpy']\n")
     run = subprocess.run([sys.executable, "-c", code], check=False, capture_output=True, text=True, timeout=120)
     assert run.returncode == 0, run.stderr[-2000:]
@@ -174,15 +174,15 @@ def test_map_state_global_tracking_lost_global():
     d = MapDriver(lost_after=2)
     assert d.state.state == GLOBAL
     assert d.scan(shift(1.0)) == (GLOBAL, True)  # the first scan: no guess
-    assert d.loc.guesses[-1] is None and d.state.state == mapping.TRACKING
-    assert d.scan(shift(1.2)) == (mapping.TRACKING, True)  # from the last accepted pose
+    assert d.loc.guesses[-1] is None and d.state.state == map_state.TRACKING
+    assert d.scan(shift(1.2)) == (map_state.TRACKING, True)  # from the last accepted pose
     assert np.allclose(d.loc.guesses[-1], shift(1.0))
-    assert d.scan(shift(5.0)) == (mapping.TRACKING, False)  # kidnapped: the guess is 3.8 m off, one miss
+    assert d.scan(shift(5.0)) == (map_state.TRACKING, False)  # kidnapped: the guess is 3.8 m off, one miss
     assert d.scan(shift(5.1)) == (LOST, False)  # a second miss: lost
     assert np.allclose(d.loc.guesses[-1], shift(1.2)), "a rejected pose is never the next guess"
     assert d.scan(shift(5.2)) == (GLOBAL, True)  # relocalised without a guess
     assert d.loc.guesses[-1] is None
-    assert d.scan(shift(5.3)) == (mapping.TRACKING, True)
+    assert d.scan(shift(5.3)) == (map_state.TRACKING, True)
 
 
 def test_off_map_scans_publish_nothing_and_stay_lost_until_one_is_placed():
@@ -192,37 +192,37 @@ def test_off_map_scans_publish_nothing_and_stay_lost_until_one_is_placed():
     assert d.scan(shift(50.0)) == (LOST, False)  # the third miss in a row
     assert d.scan(shift(50.0)) == (LOST, False)  # still lost; each is tried globally
     assert all(g is None for g in d.loc.guesses)
-    assert d.scan(shift(2.0)) == (GLOBAL, True) and d.state.state == mapping.TRACKING and d.state.misses == 0
+    assert d.scan(shift(2.0)) == (GLOBAL, True) and d.state.state == map_state.TRACKING and d.state.misses == 0
 
 
 def test_a_hit_between_misses_restarts_the_count():
     d = MapDriver(lost_after=2)
     d.scan(shift(1.0))
-    assert d.scan(shift(3.0)) == (mapping.TRACKING, False)
-    assert d.scan(shift(1.1)) == (mapping.TRACKING, True)  # back near the last pose
-    assert d.scan(shift(3.0)) == (mapping.TRACKING, False)  # one miss again, not two
-    assert d.state.state == mapping.TRACKING
+    assert d.scan(shift(3.0)) == (map_state.TRACKING, False)
+    assert d.scan(shift(1.1)) == (map_state.TRACKING, True)  # back near the last pose
+    assert d.scan(shift(3.0)) == (map_state.TRACKING, False)  # one miss again, not two
+    assert d.state.state == map_state.TRACKING
 
 
 def test_relocalize_localises_the_next_scan_globally_and_ignores_scans_taken_before():
     d = MapDriver()
     d.scan(shift(1.0))
     step = d.state.step()
-    assert step.mode == mapping.TRACKING
+    assert step.mode == map_state.TRACKING
     d.relocalize()
-    assert d.state.update(step, hit=True) == mapping.TRACKING and d.state.state == GLOBAL  # stale: no effect
-    assert d.state.update(step, hit=False) == mapping.TRACKING and d.state.misses == 0
+    assert d.state.update(step, hit=True) == map_state.TRACKING and d.state.state == GLOBAL  # stale: no effect
+    assert d.state.update(step, hit=False) == map_state.TRACKING and d.state.misses == 0
     assert d.scan(shift(1.1)) == (GLOBAL, True) and d.loc.guesses[-1] is None
 
 
 def test_a_topic_guess_is_used_in_every_state_and_the_parameter_never():
     d = MapDriver(lost_after=1)
     d.tracker.set_guess(shift(7.1), "map", None, "initialpose", now=0.0)
-    assert d.scan(shift(7.0), now=0.5) == (mapping.TRACKING, True)  # RViz's pose: the first scan starts there
+    assert d.scan(shift(7.0), now=0.5) == (map_state.TRACKING, True)  # RViz's pose: the first scan starts there
     assert np.allclose(d.loc.guesses[-1], shift(7.1))
     assert d.scan(shift(20.0), now=1.0) == (LOST, False)
     d.tracker.set_guess(shift(-3.1), "map", None, "initialpose", now=1.5)  # lost, then a pose from RViz
-    assert d.scan(shift(-3.0), now=2.0) == (mapping.TRACKING, True) and np.allclose(d.loc.guesses[-1], shift(-3.1))
+    assert d.scan(shift(-3.0), now=2.0) == (map_state.TRACKING, True) and np.allclose(d.loc.guesses[-1], shift(-3.1))
     d.relocalize()  # forgets the guess too
     assert d.scan(shift(-3.0), now=2.5) == (GLOBAL, True) and d.loc.guesses[-1] is None
 
