@@ -1,4 +1,5 @@
-"""Pipeline stage "confidence": the probability that a registration is right, from its verification.
+"""The confidence calibration: the verification features of a pose and the fitted models that turn them
+into the probability that it is right.
 
 A registration is verified by how the aligned source sits on the target (`score.overlap_shares`: the
 share of source points within 1, 2, 3 and 5 target spacings), how many of the network's generated
@@ -6,11 +7,11 @@ correspondences the pose keeps (the inlier ratio) and how well the geometry cons
 (`score.unconstrained_directions`). A logistic model over those `FEATURES` turns them into P(success),
 where success is the model's rule (`ConfidenceModel.success`: scenes RE < 2 deg and TE < 5 cm; objects
 RE < 5 deg). It is fitted on training pairs only (`scripts/calibrate_confidence.py`) for one checkpoint,
-one model per refinement (`RefineConfig.method`: the features' scale depends on it), and ships
-beside the checkpoint as `<name>.confidence.json`, tied to the checkpoint by its SHA-256: a calibration
-never silently serves another model, nor a refinement it was not fitted for. A checkpoint without one keeps the uncalibrated
-score `score.confidence` (the geometric mean of fitness, tight fitness and inlier ratio). Either is then
-multiplied by the degeneracy factor: where the geometry leaves a motion free, no pose along it is "right".
+one model per refinement (a `refinement.REFINEMENTS` name: the features' scale depends on it) and one for
+map tracking (`result.TRACKING_CALIBRATION`), and ships beside the checkpoint as `<name>.confidence.json`,
+tied to the checkpoint by its SHA-256: a calibration never silently serves another model, nor a refinement
+it was not fitted for. How a result's confidence is worked out from it (the rival, the degeneracy factor,
+and a registrar without a calibration for its refinement) is `genreg_core.result`'s.
 """
 
 from __future__ import annotations
@@ -64,7 +65,7 @@ class ConfidenceModel:
     """A checkpoint's calibration: one fitted `Logistic` per refinement it serves (the features' scale depends
     on how the pose was refined), and what it was fitted for."""
 
-    by_refinement: dict[str, Logistic]  # RefineConfig.method -> its model
+    by_refinement: dict[str, Logistic]  # RefineConfig.method (or result.TRACKING_CALIBRATION) -> its model
     success: str  # the success rule the probability is of, e.g. "RE < 2 deg and TE < 0.05 m"
     checkpoint_sha256: str  # the checkpoint it belongs to
     fitted_on: str  # the training pairs

@@ -25,6 +25,7 @@ from pathlib import Path
 from typing import Any, TypeVar
 
 from genreg_core.errors import ConfigError
+from genreg_core.refinement import REFINEMENTS
 
 REPO_ROOT = Path(__file__).resolve().parent.parent
 DEFAULT_DATA_ROOT = REPO_ROOT.parent / "shared" / "data"
@@ -37,7 +38,7 @@ SCENE_MODEL = "7scenes"
 
 AUTO_INLIER_THRESHOLD = 0.05  # PDSAC inlier residual, auto: this share of the source's robust extent
 AUTO_ICP_DISTANCE = 0.05  # ICP correspondence distance, auto
-AUTO_GUARD_DISTANCE = 0.5  # ICP from the initial guess (the refinement guard), auto
+AUTO_GUARD_DISTANCE = 0.5  # the refinement guard's ICP from identity, auto
 
 
 def data_root(configured: str | os.PathLike | None = None) -> Path:
@@ -208,31 +209,34 @@ SCENE_PDSAC = PDSACConfig(sample_size=4)
 
 @dataclass(frozen=True)
 class RefineConfig:
-    """Optional ICP refinement after GenReg + PDSAC (Open3D), and its guard.
+    """Optional refinement after GenReg + PDSAC, and its guard.
 
-    Guard against a wrong global estimate (e.g. a symmetric shape flipped): when the confidence after
-    refinement is below `guard_below`, ICP also runs from identity with the wide cut-off
-    `guard_distance` and `guard_iterations`; the start that puts more source points within one target
-    spacing of the target wins (`score.TIGHT_SPACINGS`). 0 turns the guard off. Chosen on training-split pairs (MODEL_CARD.md). With an initial guess,
-    refinement always runs from the guess too (with the refinement's own settings) and competes the
-    same way, so an exact guess is kept.
+    `method` is one of the refinement registry's (`genreg_core.refinement.REFINEMENTS`: the function that
+    refines, the target it needs, whether the calibration serves it).
+
+    Guard against a wrong global estimate (e.g. a symmetric shape flipped): without an initial guess, when
+    the overlap score after refinement is below `guard_below`, the refinement also runs from identity with
+    the wide cut-off `guard_distance` and `guard_iterations`; it replaces the pose when it puts more source
+    points within one target spacing of the target (`score.TIGHT_SPACINGS`), and the result's `start` is
+    then "guard". 0 turns the guard off. Chosen on training-split pairs (MODEL_CARD.md, "the refinement
+    guard"). With an initial guess, refinement always runs from the guess too (with the refinement's own
+    settings) and competes the same way, so an exact guess is kept.
     """
 
     method: str = setting("none", "Refinement after PDSAC: Open3D ICP point_to_point or point_to_plane, or "
-                          "small_gicp's gicp.", choices=("none", "point_to_point", "point_to_plane", "gicp"))
+                          "small_gicp's gicp.", choices=tuple(REFINEMENTS))
     max_iterations: int = setting(10, "ICP iterations.", low=1, high=1000)
     max_correspondence_distance: float = setting(0.0, "ICP correspondence distance, m (input units); 0: auto, "
                                                  "5 % of the source's robust extent.", low=0.0, high=1e4)
     num_points: int = setting(5000, "Points per cloud used by ICP and the fitness measure.", low=16,
                               high=1_000_000)
-    guard_below: float = setting(0.4, "Below this overlap score (the geometric mean of fitness, tight fitness and "
-                                 "inlier ratio) ICP also runs from the initial guess; the "
-                                 "start with more source points within one target spacing wins (0: off).",
+    guard_below: float = setting(0.4, "Without an initial guess, below this overlap score (the geometric mean of "
+                                 "fitness, tight fitness and inlier ratio) ICP also runs from identity (the guard); "
+                                 "the start with more source points within one target spacing wins (0: off).",
                                  low=0.0, high=1.0)
-    guard_distance: float = setting(0.0, "ICP correspondence distance of the guard's run from the initial "
-                                    "guess (no guess given), m; 0: auto, 50 % of the robust extent.", low=0.0,
-                                    high=1e4)
-    guard_iterations: int = setting(50, "ICP iterations from the initial guess.", low=1, high=1000)
+    guard_distance: float = setting(0.0, "ICP correspondence distance of the guard's run from identity, m; 0: "
+                                    "auto, 50 % of the robust extent.", low=0.0, high=1e4)
+    guard_iterations: int = setting(50, "ICP iterations of the guard's run from identity.", low=1, high=1000)
     fine_fraction: float = setting(1.0, "After the ICP iterations, `fine_iterations` more at this fraction of the "
                                    "correspondence distance: the wide distance finds the basin, the tight one "
                                    "keeps points outside the overlap from pulling the pose (1: one stage).",

@@ -1,4 +1,5 @@
-"""Named exceptions of genreg_core. Every bad input raises one of these with a one-line message."""
+"""Named exceptions of genreg_core, and its one warning. Every bad input raises one of these with a one-line
+message."""
 
 from __future__ import annotations
 
@@ -29,3 +30,9 @@ class DataNotFoundError(GenRegError, FileNotFoundError):
 
 class ConfigError(GenRegError, ValueError):
     """A configuration value is out of range or of the wrong type."""
+
+
+class UncalibratedWarning(UserWarning):
+    """A registrar's confidence is uncalibrated: its checkpoint has no confidence calibration, or none for the
+    refinement in use (`genreg_core.result`). Warned once when the registrar is built or its refinement
+    changes; filter it (`warnings.filterwarnings("ignore", category=UncalibratedWarning)`) where that is meant."""

@@ -14,8 +14,7 @@ surfaces alike.
 Without a guess, the scan is first registered against the whole map; that pose stands when the map is
 not much larger than the scan (extent below `whole_map_ratio` x the scan's) or its confidence reaches
 `accept_whole`. Otherwise (a room larger than the view, a floor, a building: too few of the model's map
-samples lie where the scan is; on redkitchen training maps 1.8-1.9x a scan's extent the whole map placed
-11 of 13 and 5 of 11 scans, the places 13 of 13 each) the map is cut into candidate places: the centres
+samples lie where the scan is; MODEL_CARD "Map relocalisation") the map is cut into candidate places: the centres
 of occupied cells of a grid with spacing `place_spacing` x the scan's radius, each place the map points
 within `place_radius` x that radius of its centre, at most `place_points` of them (built on first use per
 radius, kept in memory and, with `cache_dir`, on disk by the map's content hash). The scan is registered
@@ -26,18 +25,20 @@ confident pose, the whole map's included, wins.
 
 With a guess (tracking), the scan is aligned by GICP from the guess against the map around the guessed
 scan position (`local_radius` scan radii; the whole map when it fits), prepared once per region
-(`refine.gicp_target`: its covariances and k-d tree), with no network pass: 13-20 ms a scan held out.
-Its confidence is the calibration's `TRACKING` model (fitted on training maps from guesses near and far
-from the truth: `scripts/calibrate_confidence.py fit-tracking`) over the same verification
-features, the inlier ratio taken as 1 (no generated correspondences). When that probability is below
-`track_below` (a guess too far off), the map is cropped around the guessed scan position (`crop_radius` x
-the scan's radius) and GenReg registers the scan from the guess; the more probable pose wins. A
-checkpoint whose calibration has no `TRACKING` model always takes that second path.
+(`refine.gicp_target`: its covariances and k-d tree), with no network pass. Its result is built as a
+registration's (`result.build_result`); its confidence is the calibration's tracking model
+(`TRACKING_CALIBRATION`, fitted on training maps from guesses near and far from the truth:
+`scripts/calibrate_confidence.py fit-tracking`) over the same verification features, the inlier ratio
+taken as 1 (no generated correspondences). When that probability is below `track_below` (a guess too far
+off), the map is cropped around the guessed scan position (`crop_radius` x the scan's radius) and GenReg
+registers the scan from the guess; the more probable pose wins. A checkpoint whose calibration has no
+tracking model always takes that second path.
 
 `accept_whole` and `track_below` steer the search's effort; whether a pose is good enough is the caller's
 decision from its confidence (the node's `min_confidence`). A scan the map does not hold gets a low
 confidence, not an exception; bad input raises the named errors the Registrar raises
-(`genreg_core.errors`). The defaults were chosen on redkitchen training frames 0-799.
+(`genreg_core.errors`). The defaults were chosen on redkitchen training frames 0-799 (MODEL_CARD "Map
+relocalisation": their measurements).
 """
 
 from __future__ import annotations
@@ -55,35 +56,29 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from genreg_core.checkpoint import resized
-from genreg_core.confidence import FEATURES, SPACINGS, features
+from genreg_core.confidence import SPACINGS
 from genreg_core.config import SCENE_MODEL, SCENE_REGISTRATION, LocalizationConfig
 from genreg_core.errors import ConfigError, TooFewPointsError
 from genreg_core.geometry import apply_transform
 from genreg_core.prepare import check_transform, robust_extent, validate_cloud
 from genreg_core.preprocess import voxel_downsample
 from genreg_core.refine import gicp_target
-from genreg_core.registration import Registrar, RegistrationResult
-from genreg_core.score import (
-    COVARIANCE_FLOOR_M,
-    COVARIANCE_FLOOR_RAD,
-    COVARIANCE_INFLATION,
-    FITNESS_SPACINGS,
-    TIGHT_SPACINGS,
-    TargetIndex,
-    overlap_shares,
-    pose_covariance,
-    unconstrained_directions,
+from genreg_core.registration import Registrar
+from genreg_core.result import (
+    TRACKING_CALIBRATION,
+    Aligned,
+    Confidence,
+    RegistrationResult,
+    Verified,
+    build_result,
 )
+from genreg_core.score import FITNESS_SPACINGS, TIGHT_SPACINGS, TargetIndex, overlap_shares
 
-# The settings are `LocalizationConfig`'s. Measured for its defaults on redkitchen training maps: places
-# screened at N (screen_model_points) 512, 256 and 128 placed 29 of 30 scans each, in 1.34 s, 0.76 s and 0.74 s
-# a scan; places of at most 4096, 8192 or all (about 34k) map points (place_points) 29 of 30 each; tracking on
-# 1500 scan points (track_points) as often right as on 2500 from guesses 2 cm to 1 m off, in 0.6x the time
-# (1000 lost some). Below: implementation details that change no result.
+# The settings are `LocalizationConfig`'s (their measurements: MODEL_CARD "Map relocalisation"). Below:
+# implementation details that change no result.
 SPACING_SAMPLES = 20_000  # the map's resolution is the median nearest-neighbour spacing of this many points
 RADIUS_QUANTILE = 0.9  # a scan's radius: this quantile of its points' distances from their centroid
 PLACE_CHUNK = 256  # place centres searched at once (bounds the memory of the neighbour lists)
-TRACKING = "map_tracking"  # the calibration's model of tracking results (`ConfidenceModel.by_refinement` key)
 EXTENT_SAMPLES = 200_000  # the map's robust extent from this many of its points
 
 
@@ -190,6 +185,7 @@ class MapLocalizer:
         self._screen_config = replace(cfg, refine=replace(cfg.refine, method="none", num_points=config.screen_points),
                                       pdsac=replace(cfg.pdsac, modes=1))
         self._screen_model = resized(self.registrar.model, config.screen_model_points) or self.registrar.model
+        self._screener = Registrar(self._screen_model, self._screen_config, self.registrar.calibration)
 
     def places(self, radius: float) -> list[np.ndarray]:
         """The candidate places for scans of this radius, as map row indices: the map points within
@@ -254,7 +250,7 @@ class MapLocalizer:
             raise TooFewPointsError(f"source has {len(scan)} points after voxelising to the map's "
                                     f"{self.voxel_size:.3g}; registration needs at least {reg.config.min_points}")
         centroid, radius, extent = self.scan_geometry(scan)
-        if guess is not None:
+        if guess is not None:  # tracking runs with the calibration's tracking model only
             tracked = self.track(scan, guess, (centroid, radius)) if self.tracking_calibrated else None
             if tracked is not None and tracked.confidence >= self.config.track_below:
                 return tracked
@@ -272,10 +268,14 @@ class MapLocalizer:
         return max([whole, *verified], key=lambda r: r.confidence)
 
     @property
+    def tracking_confidence(self) -> Confidence:
+        """How tracking results' confidence is worked out: the registrar's calibration's tracking model."""
+        return Confidence(self.registrar.calibration, TRACKING_CALIBRATION)
+
+    @property
     def tracking_calibrated(self) -> bool:
-        """Whether the registrar's calibration has a model of tracking results (`TRACKING`)."""
-        calibration = self.registrar.calibration
-        return calibration is not None and calibration.serves(TRACKING)
+        """Whether the registrar's calibration has a model of tracking results (`TRACKING_CALIBRATION`)."""
+        return self.tracking_confidence.calibrated
 
     def local(self, centre: np.ndarray, radius: float) -> LocalMap | None:
         """Tracking's local map for a scan of this radius guessed at `centre`: the map within `local_radius`
@@ -297,11 +297,11 @@ class MapLocalizer:
     def track(self, scan: np.ndarray, guess: np.ndarray, geometry: tuple[np.ndarray, float] | None = None
               ) -> RegistrationResult | None:
         """The voxelised scan aligned by GICP from `guess` (T_map_scan) against the local map around it
-        (`local`), verified as a registration is (`confidence.FEATURES`, inlier ratio 1: no network pass;
-        the result's `inlier_ratio` and generated clouds are empty: NaN and (0, 3)). `geometry`: the scan's
-        (centroid, radius) from `scan_geometry`, if known. Its confidence is the `TRACKING` model's
-        probability, else (uncalibrated) the geometric mean of fitness and tight fitness; both times the
-        degeneracy factor. None when the map holds too few points around the guess."""
+        (`local`), verified and built into a result as a registration is (`result.build_result`: inlier ratio
+        NaN, taken as 1: no network pass; no generated clouds; `start` "initial_guess"). `geometry`: the
+        scan's (centroid, radius) from `scan_geometry`, if known. Its confidence is the calibration's tracking
+        model's (`tracking_confidence`; without one, uncalibrated as `genreg_core.result` says). None when the
+        map holds too few points around the guess."""
         t0 = time.perf_counter()
         centroid, radius = geometry or self.scan_geometry(scan)[:2]
         local = self.local(apply_transform(guess, centroid[None])[0], radius)
@@ -317,33 +317,23 @@ class MapLocalizer:
         moved = apply_transform(T, sample)
         distance = FITNESS_SPACINGS * voxel
         within = overlap_shares(sample, index, T, np.multiply([*SPACINGS, FITNESS_SPACINGS, TIGHT_SPACINGS], voxel))
-        shares, fitness, tight = within[:len(SPACINGS)], float(within[-2]), float(within[-1])
         _, squared = index.nearest(moved)  # the query overlap_shares asked, answered from memory
         close = squared < distance * distance
-        unconstrained, constraint = unconstrained_directions(moved, index, distance)
-        covariance = pose_covariance(moved, index, T[:3, 3], distance, COVARIANCE_INFLATION,
-                                     (COVARIANCE_FLOOR_M, COVARIANCE_FLOOR_RAD))
-        verification = features(shares, 1.0, constraint)
-        calibration = self.registrar.calibration
-        probability = (calibration.probability(verification, TRACKING) if self.tracking_calibrated
-                       else float(np.sqrt(fitness * tight)))
+        verified = Verified(within[:len(SPACINGS)], float(within[-2]), float(within[-1]),
+                            float(np.sqrt(squared[close].mean())) if close.any() else float("nan"), float("nan"))
+        result = build_result(T, verified, Aligned(moved, index, T[:3, 3], distance), self.tracking_confidence,
+                              start="initial_guess", aligned_source=apply_transform(T, scan).astype(np.float32),
+                              source_valid_mask=np.ones(len(scan), bool))
         t2 = time.perf_counter()
-        return RegistrationResult(
-            transformation=T, source_generated=np.zeros((0, 3), np.float32), target_generated=np.zeros((0, 3), np.float32),
-            aligned_source=apply_transform(T, scan).astype(np.float32), source_valid_mask=np.ones(len(scan), bool),
-            fitness=fitness, tight_fitness=tight, inlier_ratio=float("nan"),
-            inlier_rmse=float(np.sqrt(squared[close].mean())) if close.any() else float("nan"),
-            confidence=constraint * probability, start="initial_guess", covariance=covariance,
-            unconstrained=unconstrained, verification=dict(zip(FEATURES, verification.tolist(), strict=True)),
-            timings={"refine": t1 - t0, "result": t2 - t1, "total": t2 - t0})
+        result.timings = {"refine": t1 - t0, "result": t2 - t1, "total": t2 - t0}
+        return result
 
     def screen(self, scan: np.ndarray, places: Sequence[np.ndarray]) -> list[RegistrationResult]:
         """The scan registered against every place (point sets), unrefined, in batches of `batch_size`."""
-        screener = Registrar(self._screen_model, self._screen_config, self.registrar.calibration)
         results: list[RegistrationResult] = []
         batch = self.config.batch_size
         for start in range(0, len(places), batch):
-            results += screener.register_many([(scan, place) for place in places[start: start + batch]])
+            results += self._screener.register_many([(scan, place) for place in places[start: start + batch]])
         return results
 
     def refined(self, scan: np.ndarray, guess: np.ndarray, centre: np.ndarray, radius: float) -> RegistrationResult:
@@ -354,4 +344,4 @@ class MapLocalizer:
         return self.registrar.register(scan, target, guess)
 
 
-__all__ = ["TRACKING", "MapLocalizer", "median_spacing"]
+__all__ = ["TRACKING_CALIBRATION", "MapLocalizer", "median_spacing"]

@@ -1,8 +1,10 @@
-"""Pipeline stage "refine": the one ICP wrapper of genreg (Open3D) and the refinement guard.
+"""Pipeline stage "refine": the one ICP wrapper of genreg (Open3D, small_gicp) and the refinement guard.
 
 Every ICP in the project (the pipeline's refine stage and its guard, the benchmark baselines, the replay
-harness's reference) calls `icp`. Transforms are target_from_source (`genreg_core.geometry`), in the
-units of the points given.
+harness's reference) calls `icp`. The pipeline runs the method `RefineConfig.method` names through the
+refinement registry (`genreg_core.refinement.REFINEMENTS`): `refine` and `guard_icp` call its function,
+one of `point_to_point`, `point_to_plane` and `gicp_on_index` below. Transforms are target_from_source
+(`genreg_core.geometry`), in the units of the points given.
 """
 
 from __future__ import annotations
@@ -12,6 +14,7 @@ import open3d as o3d
 import small_gicp
 
 from genreg_core.config import RefineConfig
+from genreg_core.refinement import refinement
 from genreg_core.score import NORMAL_NEIGHBOURS, TargetIndex
 
 
@@ -144,13 +147,39 @@ def stages(max_distance: float, max_iterations: int, fine: tuple[float, int] | N
     return [(max_distance, max_iterations), *([] if fine is None else [fine])]
 
 
-def refine(src: np.ndarray, tgt: np.ndarray | o3d.geometry.PointCloud, T_init: np.ndarray, cfg: RefineConfig
-           ) -> np.ndarray:
-    """The pipeline's refine stage: `cfg.max_iterations` ICP iterations of `cfg.method` from T_init, then its
-    tight stage (`tight_stage`) (`tgt` may be an Open3D cloud with normals for point-to-plane,
-    `PreparedPair.plane_target`)."""
-    return icp(src, tgt, T_init, method=cfg.method, max_distance=cfg.max_correspondence_distance,
-               max_iterations=cfg.max_iterations, fine=tight_stage(cfg))
+def point_to_point(source: np.ndarray, target: np.ndarray | TargetIndex, init: np.ndarray, *, max_distance: float,
+                   max_iterations: int, fine: tuple[float, int] | None = None) -> np.ndarray:
+    """The registry's "point_to_point": Open3D point-to-point ICP (`icp`) against the target's points."""
+    return icp(source, target, init, method="point_to_point", max_distance=max_distance,
+               max_iterations=max_iterations, fine=fine)
+
+
+def point_to_plane(source: np.ndarray, target: np.ndarray | o3d.geometry.PointCloud, init: np.ndarray, *,
+                   max_distance: float, max_iterations: int, fine: tuple[float, int] | None = None) -> np.ndarray:
+    """The registry's "point_to_plane": Open3D point-to-plane ICP (`icp`) against a cloud carrying its normals
+    (`PreparedPair.plane_target`; an array gets them by `estimate_normals`)."""
+    return icp(source, target, init, method="point_to_plane", max_distance=max_distance,
+               max_iterations=max_iterations, fine=fine)
+
+
+def gicp_on_index(source: np.ndarray, target: np.ndarray | TargetIndex, init: np.ndarray, *, max_distance: float,
+                  max_iterations: int, fine: tuple[float, int] | None = None) -> np.ndarray:
+    """The registry's "gicp": small_gicp's GICP (`icp`) against a `TargetIndex`, whose k-d tree it searches and
+    whose covariances it prepares once for every candidate of a pair (`gicp_target`; an array is prepared
+    afresh)."""
+    return icp(source, target, init, method="gicp", max_distance=max_distance, max_iterations=max_iterations,
+               fine=fine)
+
+
+def refine(src: np.ndarray, tgt: object, T_init: np.ndarray, cfg: RefineConfig) -> np.ndarray:
+    """The pipeline's refine stage: `cfg.max_iterations` iterations of the registry's method `cfg.method` from
+    T_init, then its tight stage (`tight_stage`); T_init itself for "none". `tgt`: the method's
+    `Refinement.target` of the pair (or the target's points)."""
+    method = refinement(cfg.method)
+    if not method.refines:
+        return T_init
+    return method.function()(src, tgt, T_init, max_distance=cfg.max_correspondence_distance,
+                             max_iterations=cfg.max_iterations, fine=tight_stage(cfg))
 
 
 def tight_stage(cfg: RefineConfig) -> tuple[float, int] | None:
@@ -160,8 +189,8 @@ def tight_stage(cfg: RefineConfig) -> tuple[float, int] | None:
                                                   cfg.fine_iterations)
 
 
-def guard_icp(src: np.ndarray, tgt: np.ndarray | o3d.geometry.PointCloud, cfg: RefineConfig) -> np.ndarray:
-    """The refinement guard's candidate: ICP from identity with the guard's wide cut-off and iterations
-    (no initial guess given)."""
-    return icp(src, tgt, np.eye(4), method=cfg.method, max_distance=cfg.guard_distance,
-               max_iterations=cfg.guard_iterations, fine=tight_stage(cfg))
+def guard_icp(src: np.ndarray, tgt: object, cfg: RefineConfig) -> np.ndarray:
+    """The refinement guard's candidate (no initial guess given): the registry's method `cfg.method` (one that
+    refines) from identity with the guard's wide cut-off and iterations, then the tight stage."""
+    return refinement(cfg.method).function()(src, tgt, np.eye(4), max_distance=cfg.guard_distance,
+                                             max_iterations=cfg.guard_iterations, fine=tight_stage(cfg))

@@ -11,12 +11,14 @@ Stages of `register_many` (`register` is one pair of it):
     4. generate   `model.generate`: A_g (the source in the target frame) and B_g
     5. PDSAC      `pdsac.pdsac_bidirectional`: one rigid transform from both generated sets, and its other
                   distinct modes (`pdsac.distinct_modes`)
-    6. candidates GenReg's estimate, PDSAC's other modes, the initial guess, the guard's ICP from identity,
-                  the opt-in classical fallback (`fallback.fallback`), each refined (`refine.refine`, ICP)
+    6. candidates GenReg's estimate, PDSAC's other modes, the initial guess, the guard's refinement from
+                  identity, the opt-in classical fallback (`fallback.fallback`), each refined (`refine.refine`:
+                  the method of the refinement registry, `refinement.REFINEMENTS`)
     7. verify     `verify.Verifier`: overlap shares, agreement with the generated correspondences, the
-                  calibrated probability of being right (`confidence`)
+                  calibrated probability of being right (`result.Confidence`)
     8. choose     `Registrar.choose`: the candidate that verifies best replaces the pose so far
-    9. result     `Registrar.result`: scores, covariance, unconstrained motions, the confidence; input units
+    9. result     `Registrar.result` -> `result.build_result`: scores, covariance, unconstrained motions, the
+                  confidence; input units
    10. passes     `Registrar.more_passes`: while unsure, stages 1-9 again on other subsamples; the most probable wins
 Conventions (frames, units, T_target_source): `genreg_core.geometry`. `transformation` is the input's
 target_from_source; internally everything runs in the prepared pair's normalised frame.
@@ -26,16 +28,18 @@ from __future__ import annotations
 
 import os
 import time
+import warnings
 from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, replace
 
 import numpy as np
 import torch
 
 from genreg_core.checkpoint import load_checkpoint, resolve_checkpoint
-from genreg_core.confidence import FEATURES, ConfidenceModel, feature_vector, features, load_beside
+from genreg_core.confidence import ConfidenceModel, feature_vector, load_beside
 from genreg_core.config import OBJECT_MODEL, PDSACConfig, RefineConfig, RegistrationConfig
+from genreg_core.errors import UncalibratedWarning
 from genreg_core.fallback import fallback
 from genreg_core.geometry import apply_transform
 from genreg_core.pdsac import (
@@ -48,22 +52,16 @@ from genreg_core.pdsac import (
 )
 from genreg_core.prepare import PreparedPair, model_frame_config, prepare_pair
 from genreg_core.refine import guard_icp, refine
-from genreg_core.score import (
-    COVARIANCE_FLOOR_M,
-    COVARIANCE_FLOOR_RAD,
-    COVARIANCE_INFLATION,
-    confidence,
-    pose_covariance,
-    unconstrained_directions,
-)
+from genreg_core.refinement import refinement
+from genreg_core.result import Confidence, RegistrationResult, below_rival, build_result
 from genreg_core.verify import Verifier
 
 # With an initial guess, another pose replaces it only when its fitness (share of source points overlapping
 # the target) is higher by more than this: a guess the user trusts is not traded for an equal-looking pose.
 GUESS_MARGIN = 0.02
 # Refinement from the guess replaces the guess only when it puts this much larger a share of the source
-# within one target spacing (at 3 spacings a guess 3.6 deg off already overlaps 0.98 of a small object and
-# refinement could not earn its move; an exact guess on SUN3D gains 0.02 there from GICP's ~1 deg slide).
+# within one target spacing (one spacing, not three, and a margin above refinement's slide from an exact
+# guess: MODEL_CARD "Inference settings for robots").
 REFINED_GUESS_MARGIN = 0.05
 
 
@@ -99,39 +97,6 @@ def torch_threads(n: int) -> Iterator[None]:
     finally:
         if change:
             torch.set_num_threads(previous)
-
-
-@dataclass
-class RegistrationResult:
-    """Result of one registration. Transform and clouds are in the input's units."""
-
-    transformation: np.ndarray  # (4, 4) float64, target_from_source
-    source_generated: np.ndarray  # A_g: (n, 3) model-resolution source generated in the target frame
-    target_generated: np.ndarray  # B_g: (n, 3) model-resolution target generated in the source frame
-    aligned_source: np.ndarray  # (K, 3) float32: the finite source points, input order, in target frame
-    source_valid_mask: np.ndarray  # (N,) bool: which input source rows were finite (and kept)
-    fitness: float  # share of sampled source points with a target point within 3x the target's spacing
-    tight_fitness: float  # the same share within 1x the target's spacing
-    inlier_ratio: float  # fraction of generated correspondences (both directions) consistent with T
-    inlier_rmse: float  # RMS distance of the fitness inliers, input units
-    confidence: float  # the probability that the pose is right (the model's success rule; genreg_core.confidence)
-    # from its calibration, for a checkpoint without one the geometric mean of fitness, tight_fitness and
-    # inlier_ratio (score.confidence); times the degeneracy factor (score.unconstrained_directions)
-    start: str = "genreg"  # what the final pose grew from: "genreg", "initial_guess" (the guess, or the
-    # guard's ICP from identity without a guess, overlapped the target better) or "fallback" (FPFH + RANSAC)
-    covariance: np.ndarray | None = None  # (6, 6) of the final pose, ROS order (x, y, z, rot x, y, z), m, rad
-    timings: dict[str, float] = field(default_factory=dict)  # seconds per stage (`STAGES`; those that ran) and
-    # 'total'; with more passes, the first pass's stages, 'passes' the other passes' seconds, 'total' of all
-    passes: int = 1  # network passes run (`RegistrationConfig.passes`: more only while unsure)
-    unconstrained: tuple[str, ...] = ()  # motions the aligned geometry does not constrain, target frame, e.g.
-    # "rotation about (0.00, 0.00, 1.00)" (score.unconstrained_directions); empty: fully constrained
-
-    verification: dict[str, float] = field(default_factory=dict)  # the confidence's inputs (confidence.FEATURES)
-
-    @property
-    def degenerate(self) -> bool:
-        """Whether the geometry leaves some motion unconstrained (`unconstrained` is not empty)."""
-        return bool(self.unconstrained)
 
 
 @dataclass
@@ -193,23 +158,13 @@ COARSE_ITERATIONS = 10  # ... with this many ICP iterations
 @dataclass
 class Choice:
     """Where a pair's candidates settled (stage 8): the pose (normalised frame, b ~ T a), what it grew from
-    ("genreg", "initial_guess" or "fallback"), the inlier ratio of the generated correspondences under it, and
-    its rival: two distinct poses cannot both be right, so P(this one) <= 1 - P(the rival)."""
+    (`result.STARTS`), the inlier ratio of the generated correspondences under it, and its rival: two
+    distinct poses cannot both be right, so P(this one) <= 1 - P(the rival)."""
 
     transform: np.ndarray
     start: str
     inlier_ratio: float
     rival: float = 0.0  # the probability that another, distinct pose is right (the best other mode's)
-
-
-def icp_target(p: PreparedPair, method: str) -> object:
-    """ICP's target: with its normals for point-to-plane; for GICP the scores' index, whose k-d tree it searches."""
-    return p.plane_target if method == "point_to_plane" else p.target_index if method == "gicp" else p.dense_tgt
-
-
-def overlap_score(check: Verifier, choice: Choice) -> float:
-    """The uncalibrated score of a choice (`score.confidence`) that the guard and the fallback test."""
-    return confidence(check.fitness(choice.transform)[0], check.tight(choice.transform), choice.inlier_ratio)
 
 
 def distinct_poses(T_a: np.ndarray, T_b: np.ndarray, separation_rad: float, scale: float = 1.0) -> bool:
@@ -225,20 +180,19 @@ def verified_mode(check: Verifier, target: object, T_best: np.ndarray, best_scor
     (`find_modes()`: `Estimate.modes`, (K, 4, 4)), whichever is more probably right (`Verifier.probability`).
     Each mode other than `T_best`'s `start` is refined coarsely (`COARSE_POINTS` source points,
     `COARSE_ITERATIONS` iterations), the best of them fully; it replaces `T_best` only if it then verifies
-    better. Without refinement the modes are compared as they are. Returns the pose and its rival's
+    better. Without refinement ("none") the modes are compared as they are. Returns the pose and its rival's
     probability: the best of the other distinct poses verified."""
     modes = find_modes()
-    refining = refine_cfg.method != "none"
     dense_src = check.pair.dense_src
     coarse_src = dense_src[:: max(1, len(dense_src) // COARSE_POINTS)]
     coarse_cfg = replace(refine_cfg, max_iterations=min(COARSE_ITERATIONS, refine_cfg.max_iterations), fine_fraction=1.0)
     distinct = [M for k, M in enumerate(modes) if not any(np.array_equal(M, m) for m in [start, *modes[:k]])]
-    coarse = [refine(coarse_src, target, M, coarse_cfg) if refining else M for M in distinct]
+    coarse = [refine(coarse_src, target, M, coarse_cfg) for M in distinct]
     scores = [check.probability(T) for T in coarse]
     chosen = T_best
     if scores and max(scores) > best_score:
         best = int(np.argmax(scores))
-        rival = refine(dense_src, target, coarse[best], refine_cfg) if refining else coarse[best]
+        rival = refine(dense_src, target, coarse[best], refine_cfg)
         chosen = rival if check.probability(rival) > best_score else T_best
     separation = np.radians(check.separation)
     # the rival: the most probable candidate that stayed a distinct pose (modes often refine to one answer)
@@ -248,13 +202,38 @@ def verified_mode(check: Verifier, target: object, T_best: np.ndarray, best_scor
 
 
 class Registrar:
-    """A loaded GenReg model plus its registration settings. Thread-compatible, not thread-safe."""
+    """A loaded GenReg model plus its registration settings and its checkpoint's confidence calibration.
+    Thread-compatible, not thread-safe.
+
+    A registrar whose calibration does not serve its refinement (`refine.method`; no calibration at all
+    included) is uncalibrated: its confidence is the overlap score, PDSAC's other modes and more passes are
+    off (`genreg_core.result`). It warns so (`errors.UncalibratedWarning`) when it is built and whenever its
+    settings change to such a refinement; it does not refuse them."""
 
     def __init__(self, model: torch.nn.Module, config: RegistrationConfig | None = None,
                  calibration: ConfidenceModel | None = None) -> None:
+        self.calibration = calibration  # P(success) from the verification (None: the checkpoint has none)
+        self._config: RegistrationConfig | None = None
         self.config = config or RegistrationConfig()
         self.model = model.to(self.config.device).eval()
-        self.calibration = calibration  # P(success) from the verification (None: the uncalibrated score)
+
+    @property
+    def config(self) -> RegistrationConfig:
+        """The settings the next registration uses."""
+        assert self._config is not None
+        return self._config
+
+    @config.setter
+    def config(self, config: RegistrationConfig) -> None:
+        method = config.refine.method
+        changed = self._config is None or self._config.refine.method != method
+        self._config = config
+        if changed and not self.calibrated:
+            reason = ("the checkpoint has no confidence calibration" if self.calibration is None else
+                      f"the checkpoint's confidence calibration has no model for refine.method {method!r} (it has "
+                      f"{', '.join(sorted(self.calibration.by_refinement))})")
+            warnings.warn(f"uncalibrated confidence: {reason}; the confidence is the overlap score, and PDSAC's "
+                          "other modes and more network passes are off", UncalibratedWarning, stacklevel=3)
 
     @classmethod
     def from_checkpoint(
@@ -268,9 +247,15 @@ class Registrar:
         return cls(model, config, load_beside(resolve_checkpoint(name_or_path)))
 
     @property
+    def confidence(self) -> Confidence:
+        """How this registrar's confidence is worked out: the calibration's model for its refinement."""
+        method = refinement(self.config.refine.method)
+        return Confidence(self.calibration if method.calibrated else None, method.name)
+
+    @property
     def calibrated(self) -> bool:
         """Whether the confidence is the calibration's probability: a calibration fitted for this refinement."""
-        return self.calibration is not None and self.calibration.serves(self.config.refine.method)
+        return self.confidence.calibrated
 
     @property
     def num_points(self) -> int:
@@ -330,14 +315,15 @@ class Registrar:
         t0 = time.perf_counter()
         results = [first, *(Registrar(self.model, replace(cfg, seed=seed, passes=1), self.calibration)
                             .register(*pair) for seed in seeds)]
-        scores = [self.calibration.probability(feature_vector(r.verification), cfg.refine.method) for r in results]
+        confidence = self.confidence
+        scores = [confidence.probability(feature_vector(r.verification)) for r in results]
         best = results[int(np.argmax(scores))]
         separation = np.radians(cfg.pdsac.mode_separation)
         rival = max((score for r, score in zip(results, scores, strict=True)
                      if distinct_poses(r.transformation, best.transformation, separation, p.scale)), default=0.0)
         more = time.perf_counter() - t0
         timings = first.timings | {"passes": more, "total": first.timings["total"] + more}
-        return replace(best, confidence=min(best.confidence, 1.0 - rival), timings=timings, passes=len(results))
+        return replace(best, confidence=below_rival(best.confidence, rival), timings=timings, passes=len(results))
 
     def prepare(self, source: np.ndarray, target: np.ndarray, initial_guess: np.ndarray | None = None
                 ) -> PreparedPair:
@@ -376,7 +362,7 @@ class Registrar:
         cfg = model_frame_config(self.config, p.scale)  # distances in this pair's normalised frame
         watch = Stopwatch()
         check = Verifier(p, est.source_generated[k], est.target_generated[k], cfg.pdsac.tau,  # 7. verify
-                         self.calibration if self.calibrated else None, cfg.refine.method, cfg.pdsac.mode_separation)
+                         self.confidence, cfg.pdsac.mode_separation)
         choice = self.choose(p, est, k, check, cfg, watch)  # 6.-8. candidates, refine, verify, choose
         with watch("result"):
             result = self.result(p, est, k, check, choice)  # 9. result
@@ -391,16 +377,16 @@ class Registrar:
         a calibration and no guess, a guess asks for a local answer); PDSAC's other modes only when that is
         below `pdsac.modes_below` ('modes': a confident estimate costs nothing more); the initial guess, kept
         or refined ('guess': another pose replaces it only with a `GUESS_MARGIN` more fitness); without a
-        guess, the guard's wide ICP from identity when the overlap score is below `refine.guard_below`
+        guess, the guard's wide refinement from identity when the overlap score is below `refine.guard_below`
         ('guard'); the opt-in classical fallback below `fallback.below` ('fallback'). The guard and the
         fallback replace the pose so far when they seat more of the source within one spacing."""
-        refining = cfg.refine.method != "none"
-        target = icp_target(p, cfg.refine.method)
+        method = refinement(cfg.refine.method)
+        target = getattr(p, method.target)  # the target in the form the refinement needs
         winner = est.transform[k].double().cpu().numpy()
         with watch("refine"):
-            T = refine(p.dense_src, target, winner, cfg.refine) if refining else winner
+            T = refine(p.dense_src, target, winner, cfg.refine)
         choice = Choice(T, "genreg", float(est.inliers[k].float().mean()))
-        if check.calibration is not None and p.init is None:
+        if check.confidence.calibrated and p.init is None:
             with watch("verify"):
                 score = check.probability(T)
             if score < cfg.pdsac.modes_below:
@@ -414,57 +400,37 @@ class Registrar:
         if p.init is not None:  # the initial guess: identity in the guess-moved frame
             with watch("guess"):
                 kept = np.eye(4)
-                if refining:  # refinement must earn its move away from the user's guess, at one spacing
+                if method.refines:  # refinement must earn its move away from the user's guess, at one spacing
                     moved = refine(p.dense_src, target, kept, cfg.refine)
                     kept = moved if check.closer(moved, kept, REFINED_GUESS_MARGIN) else kept
                 if check.fitness(kept)[0] + GUESS_MARGIN > check.fitness(choice.transform)[0]:
                     choice = Choice(kept, "initial_guess", check.agreement(kept))
-        elif refining and overlap_score(check, choice) < cfg.refine.guard_below:
+        elif method.refines and check.overlap_score(choice.transform, choice.inlier_ratio) < cfg.refine.guard_below:
             with watch("guard"):
                 guarded = guard_icp(p.dense_src, target, cfg.refine)
                 if check.closer(guarded, choice.transform):
-                    choice = Choice(guarded, "initial_guess", check.agreement(guarded))
-        if cfg.fallback.method != "none" and overlap_score(check, choice) < cfg.fallback.below:
+                    choice = Choice(guarded, "guard", check.agreement(guarded))
+        if cfg.fallback.method != "none" and check.overlap_score(choice.transform, choice.inlier_ratio) < cfg.fallback.below:
             with watch("fallback"):
                 rescue = fallback(p.dense_src, p.dense_tgt, cfg.fallback)
-                rescue = refine(p.dense_src, target, rescue, cfg.refine) if refining else rescue
+                rescue = refine(p.dense_src, target, rescue, cfg.refine)
                 if check.closer(rescue, choice.transform):
                     choice = Choice(rescue, "fallback", check.agreement(rescue))
         return choice
 
     def result(self, p: PreparedPair, est: Estimate, k: int, check: Verifier, choice: Choice) -> RegistrationResult:
-        """Stage 9: the chosen pose's scores, covariance, unconstrained motions and confidence (the calibrated
-        probability, else the overlap score, times the degeneracy factor), in input units (`timings` are
-        filled in by the caller)."""
-        T_n, inlier_ratio = choice.transform, choice.inlier_ratio
-        fitness, rmse_n = check.fitness(T_n)
-        tight_fitness = check.tight(T_n)
+        """Stage 9: the chosen pose verified (`Verifier.verify`, `Verifier.aligned`) into its result
+        (`result.build_result`), in input units (`timings` are filled in by the caller)."""
+        T_n = choice.transform
         T = p.to_input_units(T_n)
         origin_n = (T[:3, 3] - p.offset) / p.scale  # the pose's position, normalised frame
-        moved = apply_transform(T_n, p.dense_src.astype(np.float64))
-        covariance = pose_covariance(moved, p.target_index, origin_n, check.distance, COVARIANCE_INFLATION,
-                                     (COVARIANCE_FLOOR_M, COVARIANCE_FLOOR_RAD),
-                                     scale=p.scale)  # in the normalised frame (the fitness' index), metric
-        unconstrained, constrained = unconstrained_directions(moved, p.target_index, check.distance)
-        verification = features(check.shares(T_n), inlier_ratio, constrained)
-        probability = constrained * (min(check.calibration.probability(verification, check.refine_method),
-                                         1.0 - choice.rival) if check.calibration is not None
-                                     else confidence(fitness, tight_fitness, inlier_ratio))
         a_gen = p.points_to_input_units(est.source_generated[k].double().cpu().numpy())
         b_gen = p.points_to_input_units(est.target_generated[k].double().cpu().numpy())
-        return RegistrationResult(
-            transformation=T,
-            source_generated=a_gen.astype(np.float32),
-            target_generated=apply_transform(np.linalg.inv(p.guess), b_gen).astype(np.float32),
+        return build_result(
+            T, check.verify(T_n, choice.inlier_ratio, choice.rival), check.aligned(T_n, origin_n), check.confidence,
+            start=choice.start,
             aligned_source=p.aligned_source(T),  # float32, one product
             source_valid_mask=p.src_mask,
-            fitness=fitness,
-            tight_fitness=tight_fitness,
-            inlier_ratio=inlier_ratio,
-            inlier_rmse=rmse_n * p.scale,
-            confidence=probability,
-            start=choice.start,
-            covariance=covariance,
-            unconstrained=unconstrained,
-            verification=dict(zip(FEATURES, verification.tolist(), strict=True)),
+            source_generated=a_gen.astype(np.float32),
+            target_generated=apply_transform(np.linalg.inv(p.guess), b_gen).astype(np.float32),
         )

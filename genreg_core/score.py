@@ -1,9 +1,10 @@
-"""Pipeline stage "score": how well a transform explains the pair (fitness, inlier RMSE, confidence).
+"""Pipeline stage "score": how well a transform explains the pair (fitness, inlier RMSE, overlap score).
 
 fitness: the share of (refinement-resolution) source points that land within `FITNESS_SPACINGS` target
 point spacings of a target point; tight fitness: the same within `TIGHT_SPACINGS`; inlier ratio: the share
 of the generated correspondences (both directions) that the transform maps within PDSAC's inlier
-threshold; confidence: the geometric mean of the three (chosen on training pairs, MODEL_CARD "confidence").
+threshold; overlap score: the geometric mean of the three (`overlap_score`: what the guard and the
+fallback test, and the confidence of a registrar without a calibration, `genreg_core.result`).
 
 Every score of a pair queries the same target cloud: `TargetIndex` builds its k-d tree (small_gicp) once
 and serves the spacing, the fitness queries and the normals of the covariance from it. The score functions
@@ -22,7 +23,7 @@ from genreg_core import kernels
 from genreg_core.geometry import apply_transform
 
 FITNESS_SPACINGS = 3.0  # fitness counts a source point as overlapping within this many target spacings
-TIGHT_SPACINGS = 1.0  # tight fitness: within this many (the guard's comparison, a third of the confidence)
+TIGHT_SPACINGS = 1.0  # tight fitness: within this many (the guard's comparison, a third of the overlap score)
 NORMAL_NEIGHBOURS = 20  # target normals (covariance, point-to-plane ICP) from this many nearest neighbours
 REMEMBERED_QUERIES = 3  # TargetIndex.nearest answers the same points again from memory (last this many)
 # pose_covariance's model error, calibrated on redkitchen training pairs by scripts/calibrate_covariance.py
@@ -141,10 +142,10 @@ def overlap_shares(src: np.ndarray, tgt: np.ndarray | TargetIndex, T: np.ndarray
     return (squared[None, :] < np.square(np.asarray(distances, dtype=np.float64))[:, None]).mean(axis=1)
 
 
-def confidence(fitness: float, tight_fitness: float, inlier_ratio: float) -> float:
+def overlap_score(fitness: float, tight_fitness: float, inlier_ratio: float) -> float:
     """In [0, 1]: the geometric mean of fitness, tight fitness and inlier ratio. The tight fitness tells a
-    pose that seats a partial source on the target from one that only overlaps it loosely (on training
-    crops it lifts the ROC AUC of success from 0.88-0.92 to 0.93-0.95; MODEL_CARD "confidence")."""
+    pose that seats a partial source on the target from one that only overlaps it loosely (MODEL_CARD
+    "The confidence")."""
     return float(np.cbrt(fitness * tight_fitness * inlier_ratio))
 
 

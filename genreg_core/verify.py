@@ -3,9 +3,10 @@
 Every score of a pair is taken in the pair's normalised frame against its one target index
 (`PreparedPair.target_index`): the overlap shares (the share of the source within 1, 2, 3 and 5 target
 spacings; fitness is the share within `score.FITNESS_SPACINGS`, tight fitness within one), the agreement of
-the network's generated correspondences with the pose (their inlier ratio), and the calibrated probability
-that the pose is right (`genreg_core.confidence`), which chooses among the candidates. Each pose is looked
-up in the target index once: every score of it is read from that one query. Frames and units:
+the network's generated correspondences with the pose (their inlier ratio), the overlap score the guard and
+the fallback test, and the calibrated probability that the pose is right (`result.Confidence`), which
+chooses among the candidates. `verify` and `aligned` hand the chosen pose to `result.build_result`. Each pose
+is looked up in the target index once: every score of it is read from that one query. Frames and units:
 `genreg_core.geometry`.
 """
 
@@ -17,10 +18,11 @@ from functools import cached_property
 import numpy as np
 import torch
 
-from genreg_core.confidence import SPACINGS, ConfidenceModel, features
+from genreg_core.confidence import SPACINGS, features
 from genreg_core.geometry import apply_transform
 from genreg_core.prepare import PreparedPair
-from genreg_core.score import FITNESS_SPACINGS, TIGHT_SPACINGS
+from genreg_core.result import Aligned, Confidence, Verified
+from genreg_core.score import FITNESS_SPACINGS, TIGHT_SPACINGS, overlap_score
 
 REMEMBERED_POSES = 8  # a Verifier keeps the squared distances of this many poses (a pair's candidates)
 
@@ -29,14 +31,13 @@ REMEMBERED_POSES = 8  # a Verifier keeps the squared distances of this many pose
 class Verifier:
     """The scores of candidate poses T (normalised frame, b ~ T a) of one pair: `pair`, the network's
     generated clouds for it (A_g, B_g: (N, 3) tensors), PDSAC's inlier threshold `tau` in that frame, and
-    the calibration serving the pair's refinement (None: no calibrated probability)."""
+    how the confidence of the pair's refinement is worked out (`probability` needs it calibrated)."""
 
     pair: PreparedPair
     source_generated: torch.Tensor
     target_generated: torch.Tensor
     tau: float
-    calibration: ConfidenceModel | None = None
-    refine_method: str = "none"
+    confidence: Confidence
     separation: float = 15.0  # deg: two poses this far apart in rotation are distinct (`pdsac.mode_separation`)
     _squared: dict[bytes, np.ndarray] = field(default_factory=dict, repr=False)
 
@@ -94,11 +95,23 @@ class Verifier:
         residual = np.linalg.norm(src @ T[:3, :3].T + T[:3, 3] - dst, axis=1)
         return float(np.mean(residual < self.tau))
 
-    def features(self, T: np.ndarray, inlier_ratio: float | None = None, constraint: float = 1.0) -> np.ndarray:
-        """The confidence's `FEATURES` of T: its shares, the inlier ratio (default: `agreement`) and the
-        degeneracy factor."""
-        return features(self.shares(T), self.agreement(T) if inlier_ratio is None else inlier_ratio, constraint)
+    def overlap_score(self, T: np.ndarray, inlier_ratio: float) -> float:
+        """T's overlap score (`score.overlap_score`) with this inlier ratio: what the guard and the fallback test."""
+        return overlap_score(self.fitness(T)[0], self.tight(T), inlier_ratio)
 
-    def probability(self, T: np.ndarray, inlier_ratio: float | None = None, constraint: float = 1.0) -> float:
-        """The calibrated probability that T is right (a calibration is needed), from `features`."""
-        return self.calibration.probability(self.features(T, inlier_ratio, constraint), self.refine_method)
+    def probability(self, T: np.ndarray) -> float:
+        """The calibrated probability that T is right as a candidate (`Confidence.probability` of its features
+        with its `agreement`, the geometry taken as constrained; a calibrated `confidence` is needed)."""
+        return self.confidence.probability(features(self.shares(T), self.agreement(T), 1.0))
+
+    def verify(self, T: np.ndarray, inlier_ratio: float, rival: float = 0.0) -> Verified:
+        """The chosen pose T verified, for its result (`result.build_result`): its shares, fitness, tight
+        fitness and their RMS distance (normalised frame), with its inlier ratio and its rival's probability."""
+        fitness, rmse = self.fitness(T)
+        return Verified(self.shares(T), fitness, self.tight(T), rmse, inlier_ratio, rival)
+
+    def aligned(self, T: np.ndarray, origin: np.ndarray) -> Aligned:
+        """The pair's refinement-size source moved by T onto the target index (normalised frame; `origin`: the
+        pose's position there), for the covariance and the degeneracy (`result.build_result`)."""
+        return Aligned(apply_transform(T, self.pair.dense_src.astype(np.float64)), self.pair.target_index, origin,
+                       self.distance, self.pair.scale)

@@ -56,7 +56,7 @@ def main() -> int:
     print(f"threads {args.threads} (torch {th['torch']}, OMP_NUM_THREADS={th['OMP_NUM_THREADS']}); "
           f"{args.pairs} pairs per dataset, checkpoint {args.checkpoint}, batch {args.batch}\n")
     print("| dataset | method | RE mean (deg) | RE median (deg) | success | ms per pair | time / FPFH+RANSAC+ICP | "
-          "guard: initial guess won |")
+          "guard won |")
     print("|---|---|---|---|---|---|---|---|")
     for spec, pairs, indices in plan:
         items = [pairs[i] for i in indices]
@@ -75,7 +75,7 @@ def main() -> int:
             res = registrar.register(src, tgt)
             single[1].append(time.perf_counter() - t0)
             single[0].append(transform_errors(res.transformation, T_gt))
-            single[2].append(res.start == "initial_guess")
+            single[2].append(res.start == "guard")
         batched = rows.setdefault(f"genreg+icp batched ({args.batch})", ([], [], []))
         for k in range(0, len(clouds), args.batch):
             chunk = clouds[k : k + args.batch]
@@ -83,7 +83,7 @@ def main() -> int:
             results = registrar.register_many(chunk)
             batched[1].extend([(time.perf_counter() - t0) / len(chunk)] * len(chunk))
             batched[0].extend(transform_errors(r.transformation, T) for r, T in zip(results, truths[k:], strict=False))
-            batched[2].extend(r.start == "initial_guess" for r in results)
+            batched[2].extend(r.start == "guard" for r in results)
         base_ms = 1e3 * float(np.median(baseline[1]))
         for name, (errors, seconds, guard) in rows.items():
             re = np.array([e[0] for e in errors])

@@ -25,7 +25,7 @@ Training pairs (never the held-out ones):
 - object models, not refined, point-to-point or point-to-plane ICP:
   ModelNet40 train split (seen categories): clean pairs at N=512 up to 180 deg, and RPM-Net style
   partial-to-partial crops. Success: RE < 5 deg.
-`fit-tracking` fits the model of `MapLocalizer`'s tracking results (`localization.TRACKING`: GICP from a
+`fit-tracking` fits the model of `MapLocalizer`'s tracking results (`result.TRACKING_CALIBRATION`: GICP from a
 guess against a map, no network pass) into the scene model's calibration, keeping its other models: maps
 fused from every 10th redkitchen training frame of four 200-frame stretches (0-799), the frames between
 as scans, each from guesses 2 cm / 1 deg to 1 m / 45 deg off the truth (scans of other stretches are not
@@ -268,19 +268,19 @@ def tracking_rows(per_map: int, seed: int = 2027) -> Iterator[tuple[str, np.ndar
 
 
 def fit_tracking(model: str, per_map: int) -> None:
-    from genreg_core.localization import TRACKING
+    from genreg_core.result import TRACKING_CALIBRATION
 
     if model != SCENE_MODEL:
         raise SystemExit(f"fit-tracking: map tracking is calibrated for the scene model {SCENE_MODEL}, not {model}")
     rows = list(tracking_rows(per_map))
     X, y = np.stack([r[1] for r in rows]), np.array([r[2] for r in rows])
     logistic, held = fitted_logistic(X, y, np.arange(len(y)))
-    print(f"{model} {TRACKING}: {len(rows)} training results, 5-fold cross-validated:")
+    print(f"{model} {TRACKING_CALIBRATION}: {len(rows)} training results, 5-fold cross-validated:")
     print(f"  {'all':28s}", summary(held, y))
     for name in dict.fromkeys(r[0] for r in rows):
         mask = np.array([r[0] == name for r in rows])
         print(f"  {name:28s}", summary(held[mask], y[mask]))
-    print("wrote", save_calibration(model, {TRACKING: logistic}, f"{len(rows)} tracking results on redkitchen 0-799 maps"))
+    print("wrote", save_calibration(model, {TRACKING_CALIBRATION: logistic}, f"{len(rows)} tracking results on redkitchen 0-799 maps"))
     figure = REPO / "docs" / f"reliability_{model}_tracking.png"
     reliability_diagram(held, y, f"{model} map tracking: training maps, 5-fold cross-validated ({SCENE_RULE})", figure)
     print("wrote", figure)

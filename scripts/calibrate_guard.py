@@ -7,10 +7,10 @@ ModelNet40 seen categories, *train* split (never the benchmark's test pairs), se
 the paper's partial variant (target without its 20 % largest-x points, N=512) with the object model, and
 RPM-Net-style partial-to-partial crops with `modelnet40_partial`. Each pair is registered by
 `Registrar.register` with point-to-point refinement and each `guard_below` of THRESHOLDS (0: no guard),
-so the guard is the API's own rule: it runs when the uncalibrated confidence of the refined estimate
-(`score.confidence` of its fitness, tight fitness and inlier ratio) is below `guard_below`, and its wide
+so the guard is the API's own rule: it runs when the overlap score of the refined estimate
+(`score.overlap_score` of its fitness, tight fitness and inlier ratio) is below `guard_below`, and its wide
 ICP from identity wins when it puts more source points within one target spacing of the target
-(`score.TIGHT_SPACINGS`); the result's `start` is then "initial_guess". Per setting: mean / median RE,
+(`score.TIGHT_SPACINGS`); the result's `start` is then "guard". Per setting: mean / median RE,
 success (RE < 5 deg), the share of pairs on which the guard runs (its cost; from the unguarded result's
 scores) and the share on which it switches.
 """
@@ -45,7 +45,7 @@ def main() -> int:
     from genreg_core.data import ModelNetPairs, load_modelnet40
     from genreg_core.metrics import transform_errors
     from genreg_core.registration import Registrar
-    from genreg_core.score import confidence
+    from genreg_core.score import overlap_score
 
     def config(guard_below: float) -> RegistrationConfig:
         return RegistrationConfig(seed=0, refine=RefineConfig(method="point_to_point", guard_below=guard_below))
@@ -66,9 +66,9 @@ def main() -> int:
             for th, registrar in registrars.items():
                 result = registrar.register(item["source"], item["target"])
                 re[th].append(transform_errors(result.transformation, T_gt)[0])
-                switched[th].append(result.start == "initial_guess")
+                switched[th].append(result.start == "guard")
                 if th == 0.0:
-                    trigger.append(confidence(result.fitness, result.tight_fitness, result.inlier_ratio))
+                    trigger.append(overlap_score(result.fitness, result.tight_fitness, result.inlier_ratio))
         trigger_a = np.array(trigger)
         print(f"\n{args.pairs} {kind} pairs, ModelNet40 train split (seen), checkpoint {checkpoint}, point-to-point"
               "\n\n| guard_below | RE mean (deg) | RE median (deg) | success | guard runs | switches |"

@@ -5,15 +5,17 @@ score high, clouds of two different buildings score low."""
 from __future__ import annotations
 
 import json
+import math
+import warnings
 
 import numpy as np
 import pytest
 
 from genreg_core.checkpoint import resolve_checkpoint
 from genreg_core.confidence import FEATURES, ConfidenceModel, calibration_path, features, load_beside
-from genreg_core.config import SCENE_REGISTRATION
+from genreg_core.config import SCENE_REGISTRATION, RefineConfig
 from genreg_core.data import FramePairs, RGBDSequence
-from genreg_core.errors import CheckpointError
+from genreg_core.errors import CheckpointError, UncalibratedWarning
 from genreg_core.metrics import transform_errors
 from genreg_core.registration import Registrar
 
@@ -65,19 +67,32 @@ def test_clouds_of_two_different_places_are_not_confident(scene_registrar):
 
 
 def test_a_calibration_serves_only_the_refinements_it_was_fitted_for(scene_registrar):
-    """Results refined otherwise are on another scale: they get the uncalibrated overlap score."""
+    """Results refined otherwise are on another scale: the registrar warns when it is built (and when its
+    settings change to such a refinement, not when other settings change) and they get the uncalibrated
+    overlap score."""
     import dataclasses
 
-    from genreg_core.score import confidence
+    from genreg_core.score import overlap_score
 
     calibration = scene_registrar.calibration
     assert calibration.serves("gicp") and scene_registrar.calibrated
     other = dataclasses.replace(SCENE_REGISTRATION, refine=dataclasses.replace(SCENE_REGISTRATION.refine,
                                                                                 method="point_to_point"))
     only_gicp = dataclasses.replace(calibration, by_refinement={"gicp": calibration.by_refinement["gicp"]})
-    unserved = Registrar(scene_registrar.model, other, only_gicp)
+    with pytest.warns(UncalibratedWarning, match="no model for refine.method 'point_to_point' \\(it has gicp\\)"):
+        unserved = Registrar(scene_registrar.model, other, only_gicp)
     seq = RGBDSequence.redkitchen()
     result = unserved.register(seq.points(900)[::4], seq.points(903)[::4])
     assert not unserved.calibrated
-    assert result.confidence == pytest.approx(confidence(result.fitness, result.tight_fitness, result.inlier_ratio),
-                                              rel=1e-6)
+    constraint = math.exp(result.verification["log_constraint"])
+    assert result.confidence == pytest.approx(
+        constraint * overlap_score(result.fitness, result.tight_fitness, result.inlier_ratio), rel=1e-6)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        unserved.config = dataclasses.replace(other, passes=2)  # the same refinement: no new warning
+        unserved.config = SCENE_REGISTRATION  # a served one
+    assert unserved.calibrated
+    with pytest.warns(UncalibratedWarning, match="'none'"):
+        unserved.config = dataclasses.replace(other, refine=RefineConfig(method="none"))
+    with pytest.warns(UncalibratedWarning, match="no confidence calibration"):
+        Registrar(scene_registrar.model, SCENE_REGISTRATION)

@@ -3,6 +3,9 @@ a map fused from redkitchen validation frames, against the ground-truth poses (m
 
 from __future__ import annotations
 
+import dataclasses
+import math
+
 import numpy as np
 import open3d as o3d
 import pytest
@@ -19,6 +22,9 @@ from genreg_core.geometry import apply_transform, make_transform
 from genreg_core.localization import MapLocalizer
 from genreg_core.metrics import transform_errors
 from genreg_core.preprocess import voxel_downsample
+from genreg_core.registration import Registrar
+from genreg_core.result import TRACKING_CALIBRATION
+from genreg_core.score import overlap_score
 
 MAP_FRAMES = range(800, 1000, 10)  # redkitchen validation frames fused into the map
 SCANS = (805, 855, 925)  # scans between map frames
@@ -95,6 +101,32 @@ def test_tracking_from_nearby_guesses_is_gicp_on_the_map_with_a_calibrated_confi
         result = loc.localize(seq.points(i, stride=STRIDE), initial_guess=far)
         re, te = transform_errors(result.transformation, truth)
         assert (re < 2.0 and te < 0.05) or result.confidence < 0.5, (i, re, te, result.confidence)
+
+
+def test_without_a_tracking_model_tracking_scores_uncalibrated_and_a_guess_takes_genreg(kitchen):
+    """A calibration without the tracking model (`TRACKING_CALIBRATION`): `track` aligns as before and scores
+    as every uncalibrated result (the overlap score, the inlier ratio taken as 1, times the degeneracy
+    factor); `localize` from a guess does not track but registers by GenReg from the guess."""
+    seq, loc = kitchen
+    calibration = loc.registrar.calibration
+    assert loc.tracking_calibrated and calibration.serves(TRACKING_CALIBRATION)
+    without = dataclasses.replace(calibration, by_refinement={
+        k: v for k, v in calibration.by_refinement.items() if k != TRACKING_CALIBRATION})
+    other = MapLocalizer(loc.map, registrar=Registrar(loc.registrar.model, loc.registrar.config, without),
+                         config=LocalizationConfig(voxel_size=loc.voxel_size))
+    assert not other.tracking_calibrated
+    truth = seq.pose(855)
+    guess = make_transform(Rotation.from_rotvec([0.0, 0.02, 0.01]).as_matrix(), [0.02, -0.01, 0.0]) @ truth
+    scan = voxel_downsample(seq.points(855, stride=STRIDE).astype(np.float64), loc.voxel_size)
+    tracked, calibrated = other.track(scan, guess), loc.track(scan, guess)
+    np.testing.assert_array_equal(tracked.transformation, calibrated.transformation)
+    assert tracked.verification == calibrated.verification and np.isnan(tracked.inlier_ratio)
+    constraint = math.exp(tracked.verification["log_constraint"])
+    assert tracked.confidence == pytest.approx(constraint * overlap_score(tracked.fitness, tracked.tight_fitness, 1.0))
+    result = other.localize(seq.points(855, stride=STRIDE), initial_guess=guess)
+    assert result.start == "initial_guess" and not np.isnan(result.inlier_ratio)  # GenReg's, from the guess
+    re, te = transform_errors(result.transformation, truth)
+    assert re < 2.0 and te < 0.05, (re, te)
 
 
 def test_gicp_on_a_prepared_target_equals_small_gicps_own_alignment(kitchen):

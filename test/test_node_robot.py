@@ -111,7 +111,7 @@ def test_pose_and_registration_status_per_result(robot):
     v = diag_values(status)
     assert status.level == DiagnosticStatus.OK and v["published"] == "true"
     assert float(v["confidence"]) > 0.5 and 0.0 < float(v["fitness"]) <= 1.0 and 0 < float(v["inlier_rmse_m"]) < 0.05
-    assert v["start"] in ("genreg", "initial_guess") and v["initial_guess"] == "none"
+    assert v["start"] in ("genreg", "guard") and v["initial_guess"] == "none"
     assert v["target_frame"] == "camera_previous" and v["source_frame"] == "camera"
 
 

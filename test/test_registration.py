@@ -9,10 +9,11 @@ from scipy.spatial.transform import Rotation
 from test_model import SMALL
 
 from genreg_core.checkpoint import load_checkpoint, save_checkpoint
-from genreg_core.config import FallbackConfig, RefineConfig, RegistrationConfig
+from genreg_core.config import FallbackConfig, RefineConfig, RegistrationConfig, settings
 from genreg_core.data.rgbd import RGBDSequence
 from genreg_core.errors import (
     CheckpointError,
+    ConfigError,
     InvalidPointCloudError,
     NonFinitePointsError,
     TooFewPointsError,
@@ -20,6 +21,9 @@ from genreg_core.errors import (
 from genreg_core.geometry import apply_transform, random_transform
 from genreg_core.metrics import transform_errors
 from genreg_core.model import GenRegNet
+from genreg_core.prepare import prepare_pair
+from genreg_core.refine import guard_icp, icp, refine
+from genreg_core.refinement import REFINEMENTS, refinement
 from genreg_core.registration import Registrar
 
 
@@ -189,10 +193,10 @@ class _WrongNet(GenRegNet):
         return dataclasses.replace(out, source_generated=a @ self.R.T, target_generated=b @ self.R)
 
 
-def test_refine_guard_replaces_a_wrong_global_estimate_by_the_initial_guess():
+def test_refine_guard_replaces_a_wrong_global_estimate_by_its_refinement_from_identity():
     """The network's estimate is wrong (90 deg off), while the true 10 deg motion is within ICP's reach from
-    identity. Guard off: the network's start is kept (and fails); guard on: ICP from the initial guess
-    overlaps better, wins, is reported as such, and its confidence is the returned pose's."""
+    identity. Guard off: the network's start is kept (and fails); guard on: ICP from identity (no guess
+    given) overlaps better, wins, is reported as the guard's, and its confidence is the returned pose's."""
     src = _shape(3000)
     T = random_transform(np.random.default_rng(7), 10.0, 0.0)
     T[:3, 3] = [0.2, 0.0, -0.1]
@@ -204,7 +208,7 @@ def test_refine_guard_replaces_a_wrong_global_estimate_by_the_initial_guess():
         results[guard] = Registrar(net, cfg).register(src, tgt)
     off, on = results[0.0], results[1.0]
     assert off.start == "genreg" and transform_errors(off.transformation, T)[0] > 45.0  # control
-    assert on.start == "initial_guess" and on.fitness > off.fitness
+    assert on.start == "guard" and on.fitness > off.fitness
     re, te = transform_errors(on.transformation, T)
     assert re < 0.5 and te < 0.05
     # the generated correspondences all follow the wrong motion: none fits the returned pose
@@ -384,3 +388,30 @@ def test_the_tight_stage_keeps_points_outside_the_overlap_from_pulling_the_pose(
         assert transform_errors(p.to_input_units(one), truth)[1] > 0.003  # control: the wide stage sinks
         re, te = transform_errors(p.to_input_units(tight), truth)
         assert re < 0.05 and te < 0.0015, (re, te)
+
+
+def test_the_refinement_registry_is_the_methods_choices_and_hands_each_its_target():
+    """`RefineConfig.method`'s choices are the registry's names; each method's target is a prepared pair's
+    attribute, its function refines as `icp` with that method does, from identity in the guard; "none"
+    leaves the pose; a name outside the registry is a ConfigError."""
+    (method,) = [s for s in settings(RefineConfig) if s.name == "method"]
+    assert method.choices == tuple(REFINEMENTS) == ("none", "point_to_point", "point_to_plane", "gicp")
+    src = _shape(1500)
+    T = random_transform(np.random.default_rng(2), 5.0, 0.0)
+    p = prepare_pair(src, apply_transform(T, src), None, num_points=64, refine_points=1500, min_points=16, seed=0)
+    start = random_transform(np.random.default_rng(3), 2.0, 0.01)
+    for name, entry in REFINEMENTS.items():
+        target = getattr(p, entry.target)
+        cfg = RefineConfig(method=name, max_correspondence_distance=0.05, guard_distance=0.5, fine_fraction=0.5)
+        if not entry.refines:
+            assert refine(p.dense_src, target, start, cfg) is start
+            continue
+        fine = (0.025, cfg.fine_iterations)
+        expected = icp(p.dense_src, target, start, method=name, max_distance=0.05, max_iterations=10, fine=fine)
+        np.testing.assert_array_equal(refine(p.dense_src, target, start, cfg), expected)
+        guard = icp(p.dense_src, target, np.eye(4), method=name, max_distance=0.5, max_iterations=50, fine=fine)
+        np.testing.assert_array_equal(guard_icp(p.dense_src, target, cfg), guard)
+    with pytest.raises(ConfigError, match="refine.method must be one of"):
+        refinement("vgicp")
+    with pytest.raises(ConfigError, match="refine.method must be one of"):
+        RefineConfig(method="vgicp")
