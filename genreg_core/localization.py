@@ -93,14 +93,15 @@ def median_spacing(points: np.ndarray, samples: int = SPACING_SAMPLES, seed: int
 
 
 def kd_tree(points: np.ndarray) -> cKDTree:
-    """A k-d tree of (M, 3) float64 points that builds fast (unbalanced, leaves of 64, sharing the array:
-    10 M points in 1.5 s, 4.2 s with scipy's defaults) and answers radius queries as fast."""
+    """A k-d tree of (M, 3) float64 points that builds fast (unbalanced, leaves of 64, sharing the array;
+    MODEL_CARD "Large maps") and answers radius queries as fast."""
     return cKDTree(points, leafsize=64, balanced_tree=False, compact_nodes=False, copy_data=False)
 
 
 def occupied_cells(points: np.ndarray, spacing: float) -> np.ndarray:
     """The distinct integer cells (K, 3) of a grid with this spacing that hold points, in lexicographic
-    order (as np.unique(..., axis=0), which takes 14 s on 10 M points; one integer key per cell: 0.5 s)."""
+    order (as np.unique(..., axis=0), by one integer key per cell: far faster on large maps, MODEL_CARD
+    "Large maps")."""
     cells = np.floor(points / spacing).astype(np.int64)
     low = cells.min(axis=0)
     size = cells.max(axis=0) - low + 1
@@ -207,8 +208,8 @@ class MapLocalizer:
     def build_places(self, radius: float) -> list[np.ndarray]:
         """`places` built from the map (seeded: the same map gives the same places). When places are much
         larger than `place_points` (a building), they are searched in a random share of the map that
-        leaves them about twice that many points (a random subset of a random subset: 10 M points in
-        seconds, not a minute); maps whose places are smaller are searched whole."""
+        leaves them about twice that many points (a random subset of a random subset; MODEL_CARD "Large
+        maps"); maps whose places are smaller are searched whole."""
         cap = self.config.place_points
         spacing, reach = self.config.place_spacing * radius, self.config.place_radius * radius
         centres = (occupied_cells(self.map, spacing) + 0.5) * spacing

@@ -37,9 +37,8 @@ COVARIANCE_ROWS = 1000
 COVARIANCE_FLOOR_M = 0.0029
 COVARIANCE_FLOOR_RAD = 0.0020
 # unconstrained_directions: a motion whose normalised point-to-plane Hessian eigenvalue is below this share
-# of the largest is unconstrained by the geometry. Measured at the true pose: redkitchen training pairs
-# 0.037-0.21, ModelNet40 training objects median 0.09 (rotationally symmetric ones from 0.001), a corridor
-# 0.0014, a sphere 0.0003, a plane 0.0001, a line below 0.0001 (MODEL_CARD "degeneracy")
+# of the largest is unconstrained by the geometry (the ratios measured at true poses: MODEL_CARD
+# "Verification and confidence", degeneracy)
 DEGENERACY_RATIO = 0.005
 
 
