@@ -40,6 +40,7 @@ class LatencyBudget:
     def __init__(self) -> None:
         self._full: float | None = None  # running mean of full registrations, s
         self._last_full = -1e9  # time.monotonic() of the last full registration's start
+        self._light: tuple[RegistrationConfig, int, RegistrationConfig] | None = None  # (full, points, light)
         self._lock = threading.Lock()
 
     @property
@@ -50,7 +51,9 @@ class LatencyBudget:
     def plan(self, age: float, config: RegistrationConfig, budget: float, light_points: int
              ) -> tuple[bool, RegistrationConfig]:
         """(light, the settings to register with) for a pair `age` seconds after its later cloud arrived, under
-        a budget of `budget` seconds (0: off) with `light_points` refinement points when light."""
+        a budget of `budget` seconds (0: off) with `light_points` refinement points when light. The settings
+        are `config` itself when full, and one light object per `config` object and `light_points`, so a
+        registrar's settings change (and travel to a worker) only when full and light alternate."""
         now = time.monotonic()
         with self._lock:
             expected = self._full
@@ -58,7 +61,11 @@ class LatencyBudget:
                                                      and now - self._last_full < PROBE_S))
             if not late:
                 self._last_full = now
-        return late, light_config(config, light_points) if late else config
+                return False, config
+            cached = self._light
+            if cached is None or cached[0] is not config or cached[1] != light_points:
+                cached = self._light = (config, light_points, light_config(config, light_points))
+            return True, cached[2]
 
     def record(self, light: bool, seconds: float) -> None:
         """A registration's seconds (only full ones teach the expectation)."""

@@ -227,9 +227,6 @@ class NodeConfig:
     target_file: str = setting("", "A fixed target cloud (PLY or PCD, metres) in target_frame, read at "
                                "configure; every source registers against it (the target_cloud topic is not "
                                "subscribed). Empty: the target_cloud topic.", start_up=True)
-    target_crop_radius: float = setting(0.0, "With a pose estimate (a guess or the last result), register "
-                                        "against the fixed target's points within this radius of the "
-                                        "source's predicted centre, m; 0: off.", low=0.0, high=1e6)
     initial_guess: tuple[float, ...] = setting((), "T_target_source start: [] none, [x, y, z, qx, qy, qz, qw] (m) "
                                                "or 16 row-major 4x4 values. The initial_guess and initialpose "
                                                "topics override it.")

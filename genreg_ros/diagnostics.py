@@ -1,8 +1,12 @@
-"""register_node's counters and its /diagnostics status (one DiagnosticStatus per node).
+"""register_node's counters, its warnings about them and its /diagnostics status (one DiagnosticStatus per
+node).
 
-`Stats` is written by the subscription callbacks and the worker (thread-safe); `build_status` turns one
-snapshot of it into the status: level WARN when a cloud topic is stale, the last pair failed or its
-confidence was below warn_confidence; values as listed in docs/ros_node.md.
+`Stats` is written by the subscription callbacks, the workers and the publisher (thread-safe); `Reporter`
+counts a drop or failure there with its reason and warns about it (throttled per reason); `build_status`
+turns one snapshot of the counters into the status: level WARN when a cloud topic is stale, the last pair
+failed or its confidence was below warn_confidence; values as listed in docs/ros_node.md. `InputWatch` finds
+input topics that stay silent although a publisher is matched (large best-effort clouds lost between
+processes, a publisher that stopped) and says the likely cause once per silence.
 """
 
 from __future__ import annotations
@@ -10,13 +14,28 @@ from __future__ import annotations
 import threading
 import time
 from collections import Counter, deque
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
-from typing import Any
+from typing import TYPE_CHECKING, Any, Protocol
 
 import numpy as np
 from diagnostic_msgs.msg import DiagnosticStatus, KeyValue
 
 from genreg_ros.sync import SOURCE, TARGET
+
+if TYPE_CHECKING:
+    from rclpy.topic_endpoint_info import TopicEndpointInfo
+
+WARN_THROTTLE_S = 2.0  # one warning per drop/failure reason this often, s
+DOCS = "docs/ros_node.md"
+
+
+class Logger(Protocol):
+    """What the node's counters log through (an rclpy logger)."""
+
+    def info(self, message: str) -> object: ...
+
+    def warning(self, message: str) -> object: ...
 
 
 class Stats:
@@ -183,3 +202,117 @@ def _median_ms(values: list[float]) -> float:
 
 def _fmt(x: Any) -> str:
     return f"{x:.4g}" if isinstance(x, float) else str(x)
+
+
+class Reporter:
+    """Counts drops (`dropped.<reason>`) and failures (`failed.<reason>`) in `stats` and logs a warning for each,
+    at most one per reason every `WARN_THROTTLE_S` seconds. Thread-safe."""
+
+    def __init__(self, stats: Stats, logger: Logger) -> None:
+        self.stats = stats
+        self.logger = logger
+        self._warned: dict[str, float] = {}
+        self._lock = threading.Lock()
+
+    def drop(self, reason: str, text: str) -> None:
+        self.stats.drop(reason)
+        self.warn(reason, f"dropped ({reason}): {text}")
+
+    def fail(self, reason: str, text: str) -> None:
+        self.stats.fail(reason)
+        self.warn(reason, f"failed ({reason}): {text}")
+
+    def count(self, counter: str, reason: str, text: str) -> None:
+        """`drop` (counter "dropped") or `fail` (counter "failed")."""
+        (self.drop if counter == "dropped" else self.fail)(reason, text)
+
+    def warn(self, key: str, text: str) -> None:
+        """Log `text` as a warning unless one with this `key` was logged less than WARN_THROTTLE_S ago."""
+        now = time.monotonic()
+        with self._lock:
+            if now - self._warned.get(key, -1e9) < WARN_THROTTLE_S:
+                return
+            self._warned[key] = now
+        self.logger.warning(text)
+
+    def info(self, text: str) -> None:
+        self.logger.info(text)
+
+
+@dataclass(frozen=True)
+class Watched:
+    """A cloud subscription whose silence is watched: its resolved topic name and reliability."""
+
+    topic_name: str
+    reliability: str
+
+
+class InputWatch:
+    """The silence of the cloud subscriptions: topics that stopped delivering (stale) and matched publishers
+    whose clouds do not arrive. Each is logged once, with its likely cause. Called from one thread."""
+
+    def __init__(self, publishers: Callable[[str], Sequence[TopicEndpointInfo]], logger: Logger) -> None:
+        """`publishers(topic_name)`: the publishers matched on a topic (the node's get_publishers_info_by_topic)."""
+        self._publishers = publishers
+        self._logger = logger
+        self._topics: dict[str, Watched] = {}
+        self._matched_since: dict[str, float | None] = {}
+        self._warned: dict[str, float | None] = {}  # topic -> its last arrival when it was warned about
+        self._stale: set[str] = set()
+
+    def watch(self, topics: dict[str, Watched]) -> None:
+        """Watch these subscriptions (by topic: source, target) from now on; {}: none (inactive)."""
+        self._topics = dict(topics)
+        self._matched_since = {topic: None for topic in topics}
+        self._warned.clear()
+        self._stale.clear()
+
+    def silent_publishers(self, snap: Snapshot, now: float, timeout: float, fixed_target: bool = False) -> list[str]:
+        """Notes for watched topics with a matched publisher whose clouds have not arrived for `timeout` s: none
+        since it appeared, or none since the last one (not for a fixed target). Each silence is also warned
+        once, with the likely cause."""
+        notes = []
+        for topic, watched in self._topics.items():
+            infos = self._publishers(watched.topic_name)
+            last = snap.last_arrival[topic]
+            if not infos:
+                self._matched_since[topic] = None
+                continue
+            since = self._matched_since[topic] = self._matched_since[topic] or now
+            silent = now - max(since, last or since)
+            if silent <= timeout or (last is not None and topic == TARGET and fixed_target):
+                continue
+            kinds = sorted({i.qos_profile.reliability.name.lower() for i in infos})
+            what = f"no {topic} cloud" if last is None else f"no new {topic} cloud (publisher stopped delivering)"
+            note = f"{len(infos)} publisher(s) on {watched.topic_name} ({', '.join(kinds)}) but {what} for {silent:.1f} s"
+            notes.append(note)
+            if topic in self._warned and self._warned[topic] == last:
+                continue  # warned about this silence already
+            self._warned[topic] = last
+            self._logger.warning(f"{note}: likely cause: {_silence_cause(topic, kinds, watched.reliability, last)}; "
+                                 f"see {DOCS} (Large clouds)")
+        return notes
+
+    def warn_stale(self, stale: dict[str, str]) -> None:
+        """Log each watched topic that has just become stale (`build_status`'s notes), once per staleness."""
+        for topic, note in stale.items():
+            if topic not in self._stale and topic in self._topics:
+                self._logger.warning(f"{note} (topic {self._topics[topic].topic_name})")
+        self._stale = set(stale)
+
+
+def _silence_cause(topic: str, kinds: list[str], reliability: str, last: float | None) -> str:
+    """The likely cause of a silent topic whose publishers offer `kinds` of reliability to a subscription of
+    `reliability` (`last`: when its last cloud arrived, None: never)."""
+    cause = ("large best-effort clouds are lost between processes without the shipped Fast DDS profile "
+             "config/fastdds_large_clouds.xml in EVERY process (FASTDDS_DEFAULT_PROFILES_FILE), and clouds "
+             "above its limit are lost even with it")
+    if "best_effort" in kinds:
+        cause += "; or publish the clouds with a reliable publisher (reliability reliable)"
+        if reliability == "reliable":
+            cause = ("a best-effort publisher does not match this node's reliable subscription "
+                     f"({'qos.reliability' if topic == SOURCE else 'qos.target_reliability'}); " + cause)
+    if last is not None:  # it delivered before
+        stopped = "the publisher stopped publishing (driver stalled, bag ended)"
+        cause = f"{stopped}, or its clouds grew: {cause}" if "best_effort" in kinds else stopped
+    return cause

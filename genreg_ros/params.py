@@ -157,7 +157,9 @@ def build(values: dict[str, Any], where: str = "") -> NodeConfig:
 
 # Parameters the node no longer has -> what replaced them (said instead of a guess at a similar name).
 REMOVED = {"sync.time_jump": "removed: a stamp more than sync.slop older than the newest of its topic resets pairing",
-           "map.lost_confidence": "removed: a scan is a miss when its pose is not published (min_confidence)"}
+           "map.lost_confidence": "removed: a scan is a miss when its pose is not published (min_confidence)",
+           "target_crop_radius": "removed: use map.enabled (map mode localises scans in a large map, target_file "
+                                 "or a latched target_cloud, and crops it around the pose itself)"}
 
 
 def unknown_text(name: str) -> str:

@@ -11,9 +11,12 @@ In map mode the message starts with the scan's localisation state (`global: publ
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Any, Literal
+from typing import TYPE_CHECKING, Literal
 
 from genreg_ros.config import NodeConfig
+
+if TYPE_CHECKING:
+    from genreg_core.registration import RegistrationResult
 
 Level = Literal["ok", "warn", "error"]  # the registration_status level (DiagnosticStatus OK, WARN, ERROR)
 
@@ -45,7 +48,7 @@ class Verdict:
         return f"{self.localization}: {text}" if self.localization else text
 
 
-def judge(result: Any, config: NodeConfig) -> Verdict:
+def judge(result: RegistrationResult, config: NodeConfig) -> Verdict:
     """The verdict on `result` (a RegistrationResult: fitness, confidence, unconstrained) under the
     thresholds of `config`."""
     unconstrained = tuple(getattr(result, "unconstrained", ()) or ())

@@ -13,6 +13,9 @@ Policies (`PairSync.mode`):
 
 Drop reasons: 'queue_full' (evicted, oldest first), 'unmatched' (the other topic has moved past
 stamp + slop, or a newer pair was made), 'no_target' (latest_target mode, no target yet).
+
+`Handover` passes the pairs on to the workers (a newer pair replaces a waiting one) and numbers every pair
+that leaves it, so that `InOrder` hands the publications on in that order.
 """
 
 from __future__ import annotations
@@ -21,18 +24,20 @@ import bisect
 import threading
 from collections import Counter, deque
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, Generic, TypeVar
 
 MODES = ("approximate", "latest_target")
 SOURCE, TARGET = "source", "target"
+S = TypeVar("S")
+T = TypeVar("T")
 
 
 @dataclass(frozen=True)
-class Pair:
+class Pair(Generic[S, T]):
     """A source and a target message to register, with their stamps in nanoseconds."""
 
-    source: Any
-    target: Any
+    source: S
+    target: T
     source_stamp: int
     target_stamp: int
 
@@ -88,6 +93,16 @@ class PairSync:
             return None, []
         return self._add(TARGET, stamp, item)
 
+    @property
+    def latest_target(self) -> Any:
+        """The target every source is paired with (latest_target mode; None: none yet, or approximate mode)."""
+        return None if self._latest_target is None else self._latest_target.item
+
+    def carry_latest_target(self, other: PairSync) -> None:
+        """Keep `other`'s latest target when both pair with the latest target (new settings, same reference)."""
+        if self.mode == other.mode == "latest_target" and other._latest_target is not None:
+            self._latest_target = self._latest_target or other._latest_target
+
     def clear(self, keep_latest_target: bool = False) -> None:
         """Forget every held message and the newest stamps seen (not counted as drops); in latest_target
         mode the reference target stays if `keep_latest_target`."""
@@ -134,34 +149,46 @@ class PairSync:
         return drops
 
 
-class LatestSlot:
-    """A one-item mailbox between callbacks and the worker: a newer item replaces a waiting one.
+class Handover:
+    """The one waiting pair between the subscription callbacks and the workers, and its place in the order of
+    publication.
 
-    Thread-safe. Memory stays bounded (one waiting item) and latency stays one registration at most.
+    A newer pair replaces a waiting one (`put` returns the one it replaced). Every pair that leaves the slot,
+    taken by a worker (`take`), replaced (`put`) or discarded (`clear`), leaves with a ticket of `outbox`, drawn
+    under the slot's lock: tickets follow the order the pairs left in, and `outbox` hands the publications on
+    in that order. Memory stays bounded (one waiting pair) and latency stays one registration at most.
+    Thread-safe.
     """
 
-    def __init__(self) -> None:
+    def __init__(self, workers: int = 1) -> None:
         self._cond = threading.Condition()
         self._item: Any = None
         self._closed = False
+        self.outbox = InOrder(limit=workers)
 
-    def put(self, item: Any) -> Any:
-        """Hand over `item`; returns the waiting item it replaced (None if the slot was empty)."""
+    def put(self, item: Any) -> tuple[Any, int] | None:
+        """Hand over `item`; the waiting item it replaced and that item's ticket (None if the slot was empty)."""
         with self._cond:
             replaced, self._item = self._item, item
             self._cond.notify()
-            return replaced
+            return None if replaced is None else (replaced, self.outbox.ticket())
 
-    def take(self, timeout: float | None = None) -> Any:
-        """Wait for an item and remove it; None on timeout or after `close()`."""
+    def take(self, timeout: float | None = None) -> tuple[Any, int] | None:
+        """Wait for an item and remove it: the item and its ticket; None on timeout or after `close()`."""
         with self._cond:
             if self._item is None and not self._closed:
                 self._cond.wait(timeout)
             item, self._item = self._item, None
-            return item
+            return None if item is None else (item, self.outbox.ticket())
+
+    def clear(self) -> tuple[Any, int] | None:
+        """Remove the waiting item without waiting: it and its ticket (None if the slot was empty)."""
+        with self._cond:
+            item, self._item = self._item, None
+            return None if item is None else (item, self.outbox.ticket())
 
     def close(self) -> None:
-        """Wake every waiting `take` for shutdown."""
+        """Wake every waiting `take` for shutdown (the outbox is closed on its own, after the workers)."""
         with self._cond:
             self._closed = True
             self._cond.notify_all()
@@ -177,7 +204,8 @@ class InOrder:
     A worker takes a `ticket()` when it takes its work and hands its result (None: nothing to hand on)
     with `done(ticket, item)`; `get()` returns the items in ticket order, skipping the Nones, so a pair
     that finished early waits for the one taken before it. At most `limit` finished items wait: `done`
-    blocks beyond that, except for the ticket the consumer needs next. Thread-safe.
+    blocks beyond that, except for the ticket the consumer needs next and for small items handed over with
+    `wait=False` (a caller that must not block). Thread-safe.
     """
 
     def __init__(self, limit: int = 1) -> None:
@@ -193,9 +221,9 @@ class InOrder:
             self._issued += 1
             return self._issued - 1
 
-    def done(self, ticket: int, item: Any) -> None:
+    def done(self, ticket: int, item: Any, wait: bool = True) -> None:
         with self._cond:
-            while len(self._done) >= self._limit and ticket != self._next and not self._closed:
+            while wait and len(self._done) >= self._limit and ticket != self._next and not self._closed:
                 self._cond.wait()
             self._done[ticket] = item
             self._cond.notify_all()

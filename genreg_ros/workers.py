@@ -1,14 +1,15 @@
 """Registration in worker processes: register_node's `workers` setting above 1.
 
 Python threads share one interpreter lock, and small_gicp and Open3D hold it while they run (GICP's
-covariances, k-d trees and alignment, the scores' searches: about half of a 270k-point pair's time). Two
-registrations on two threads of one process reached 31.6 pairs/s where two processes reached 52
-(redkitchen pairs, GICP, 2 cores; measured 2026-12-02). So each worker is a process with its own `Registrar`.
+covariances, k-d trees and alignment, the scores' searches), so registrations on threads of one process do
+not run side by side (figures: docs/ros_node.md, "Pairing and load"). So each worker is a process with its
+own `Registrar`.
 
 `RemoteRegistrar` is that process seen from the node: `register`, `config` and `num_points` as the
-core's `Registrar`, one pair at a time. The two clouds go to the worker and the aligned cloud comes back
-through shared-memory blocks (one copy each way, grown when a larger cloud arrives); everything else
-(settings, initial guess, the rest of the result, errors) goes through a pipe. A `GenRegError` raised in
+core's `Registrar` (the node's `genreg_ros.registrar.Registering`), one pair at a time. The two clouds go to
+the worker and the aligned cloud comes back through shared-memory blocks (one copy each way, grown when a
+larger cloud arrives); everything else (the initial guess, the rest of the result, errors, and the settings
+when `config` was assigned since the last pair) goes through a pipe. A `GenRegError` raised in
 the worker is raised again in the caller with its class and message; a worker that dies raises
 `WorkerError` and is started again at the next `register`.
 """
@@ -21,12 +22,15 @@ import time
 from dataclasses import replace
 from multiprocessing.connection import Connection
 from multiprocessing.shared_memory import SharedMemory
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from genreg_core import errors
 from genreg_core.config import RegistrationConfig
+
+if TYPE_CHECKING:
+    from genreg_core.registration import RegistrationResult
 
 START_TIMEOUT_S = 300.0  # loading torch, the model, the compiled kernels (a cold numba cache: ~30 s) and a warm-up pair
 GROWTH = 1.25  # a shared-memory block that is too small is replaced by one this much larger than needed
@@ -54,6 +58,7 @@ class RemoteRegistrar:
     def __init__(self, checkpoint: str, config: RegistrationConfig, num_points: int | None = None,
                  name: str = "genreg_worker") -> None:
         self.config = config
+        self._sent: RegistrationConfig | None = None  # the settings the worker holds
         self._args = (checkpoint, num_points)
         self._name = name
         self._num_points: int | None = None
@@ -81,6 +86,7 @@ class RemoteRegistrar:
         self._proc = ctx.Process(target=_serve, args=(child, *self._args, self.config), name=self._name,
                                  daemon=True)
         self._proc.start()
+        self._sent = self.config
         child.close()
 
     def wait_ready(self, timeout: float = START_TIMEOUT_S) -> None:
@@ -92,8 +98,10 @@ class RemoteRegistrar:
             _raise(reply)
         self._num_points = reply[1]
 
-    def register(self, source: np.ndarray, target: np.ndarray, initial_guess: np.ndarray | None = None):
-        """`Registrar.register` in the worker: the same RegistrationResult, or the same GenRegError."""
+    def register(self, source: np.ndarray, target: np.ndarray,
+                 initial_guess: np.ndarray | None = None) -> RegistrationResult:
+        """`Registrar.register` in the worker: the same RegistrationResult, or the same GenRegError. The
+        settings travel with the pair only when `config` is not the object the worker last received."""
         if not self.alive:
             self.close()  # died since the last pair: start afresh
             self.start()
@@ -109,8 +117,10 @@ class RemoteRegistrar:
             for array, layout in zip((source, target), clouds, strict=True):
                 _view(block, layout)[...] = array
         out = self._block("out", 12 * len(source))  # the aligned cloud: float32 (K, 3), K <= len(source)
+        config = None if self.config is self._sent else self.config
         self._conn.send(("register", self._blocks["in"].name if not inline else None, out.name, clouds,
-                         initial_guess, self.config))
+                         initial_guess, config))
+        self._sent = self.config
         reply = self._receive(None)
         if reply[0] != "result":
             _raise(reply)
@@ -216,7 +226,9 @@ def _serve(conn: Connection, checkpoint: str, num_points: int | None, config: Re
             return
         if message[0] != "register":
             return
-        _, in_name, out_name, clouds, guess, registrar.config = message
+        _, in_name, out_name, clouds, guess, config = message
+        if config is not None:  # new settings (else those of the last pair)
+            registrar.config = config
         try:
             if in_name is not None:
                 block = _attach(attached, "in", in_name)

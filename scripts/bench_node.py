@@ -515,7 +515,7 @@ def summarize_soak(args, client: Client, clouds: CloudSet, sent: list[PairResult
     cpu["workers"] = cpu["node"] - cpu["node_process"]
     steady_diag = [d for t, d in diag_log if t_start + warmup <= t <= t_end]
     timing_keys = ("decode_ms", "preprocess_ms", "register_ms", "encode_ms", "publish_ms", "points_registered",
-                   "points_target", "confidence", "initial_guess_won")
+                   "points_target", "confidence", "guess_won", "guard_won")
     timings = {k: med([float(d[f"last.{k}"]) for d in steady_diag if f"last.{k}" in d]) for k in timing_keys}
     for k in ("callback_ms.median", "overhead_ms.median"):
         timings[k] = med([float(d[k]) for d in steady_diag if k in d])

@@ -33,6 +33,8 @@ def test_plan_is_full_until_a_pair_would_be_late():
     assert not b.plan(0.010, SCENE_REGISTRATION, 0.075, 1500)[0]  # 10 + 60 ms fits
     light, cfg = b.plan(0.020, SCENE_REGISTRATION, 0.075, 1500)  # 20 + 60 ms does not
     assert light and cfg == light_config(SCENE_REGISTRATION, 1500)
+    assert b.plan(0.020, SCENE_REGISTRATION, 0.075, 1500)[1] is cfg  # one light object per settings object
+    assert b.plan(0.010, SCENE_REGISTRATION, 0.075, 1500)[1] is SCENE_REGISTRATION  # full: the settings given
     assert not b.plan(10.0, SCENE_REGISTRATION, 0.0, 1500)[0]  # budget 0: off
     b.record(True, 5.0)  # light registrations teach nothing
     assert b.expected_full == 0.060

@@ -42,9 +42,11 @@ from genreg_core.errors import (
     NonFinitePointsError,
     TooFewPointsError,
 )
+from genreg_ros.cloud_file import CloudFileError, read_cloud
 from genreg_ros.config import NodeConfig
 from genreg_ros.conversions import msg_to_matrix
-from genreg_ros.node import RegisterNode, StartupError, failure_reason
+from genreg_ros.node import RegisterNode, StartupError
+from genreg_ros.pipelines import failure_reason
 from genreg_ros.pointcloud2 import array_to_msg, read_points, xyz_to_msg
 from genreg_ros.policy import judge
 
@@ -505,6 +507,48 @@ def test_newer_pairs_replace_waiting_ones(shared):
         assert len(h.aligned) - n_aligned == registered
 
 
+def test_every_pair_formed_gets_one_registration_status_superseded_ones_included(shared, monkeypatch):
+    """A burst of pairs into a slow registrar (0.4 s a pair, every other result rejected by min_fitness): each
+    pair formed gets exactly one registration_status, registered, rejected or superseded; a superseded pair's
+    is a WARN, not published, with the reason and the pair's source stamp and target frame."""
+    node = shared.node
+    register, calls = node.registrar.register, iter(range(10**6))
+
+    def slow(*args, **kwargs):
+        time.sleep(0.4)
+        result = register(*args, **kwargs)
+        return dataclasses.replace(result, fitness=0.0) if next(calls) % 2 else result
+
+    monkeypatch.setattr(node.registrar, "register", slow)
+    counts = lambda: (node.stats.paired, node.stats.registered, sum(node.stats.failed.values()),
+                      node.stats.dropped["superseded"])
+    with shared.params(min_fitness=0.5) as h:
+        before = counts()
+        pairs = [make_pair(SMALL_T, 1000.0 + 0.1 * i, seed=i % 3, n=1500) for i in range(8)]
+        keys = {(src.header.stamp.sec, src.header.stamp.nanosec) for src, _, _ in pairs}
+        mine = lambda: [m for m in h.results if (m.header.stamp.sec, m.header.stamp.nanosec) in keys]
+        for src, tgt, _ in pairs:
+            h.send(src, tgt)
+            time.sleep(0.01)
+        h.result_for(pairs[-1][0].header, timeout=20.0)  # the newest pair is always registered
+        h.wait(lambda: len(mine()) >= counts()[0] - before[0], 10.0, "a status for every pair formed")
+        time.sleep(0.5)  # nothing more comes
+        paired, registered, failed, superseded = (now - then for now, then in zip(counts(), before, strict=True))
+        with h.lock:
+            statuses = mine()
+    assert paired == len(pairs) and superseded >= 1
+    assert len(statuses) == paired == registered + failed + superseded
+    stamps = [(m.header.stamp.sec, m.header.stamp.nanosec) for m in statuses]
+    assert len(set(stamps)) == len(stamps) and stamps == sorted(stamps)  # one each, in pair order
+    values = [diag_values(m.status[0]) for m in statuses]
+    assert sum(v["published"] == "true" for v in values) == registered
+    dropped = [(m, v) for m, v in zip(statuses, values, strict=True) if v.get("reason") == "dropped.superseded"]
+    assert len(dropped) == superseded
+    for m, v in dropped:
+        assert m.status[0].level == DiagnosticStatus.WARN and v["published"] == "false"
+        assert "superseded" in m.status[0].message and m.header.frame_id == TGT_FRAME == v["target_frame"]
+
+
 def test_parameter_validation_at_run_time(shared):
     h = shared
 
@@ -619,7 +663,7 @@ def test_every_output_of_a_pair_status_included_is_published_in_order_by_the_pub
         return dataclasses.replace(register(*args, **kwargs), fitness=next(fitness))
 
     monkeypatch.setattr(node.registrar, "register", register_with_fitness)
-    monkeypatch.setattr(node, "_pubs", {name: Recorder(name, pub) for name, pub in node._pubs.items()})
+    monkeypatch.setattr(node._outputs, "pubs", {name: Recorder(name, pub) for name, pub in node._outputs.pubs.items()})
     with shared.params(min_fitness=0.5) as h:
         headers = []
         for t in (950.0, 951.0):
@@ -635,18 +679,21 @@ def test_every_output_of_a_pair_status_included_is_published_in_order_by_the_pub
 
 
 def test_a_rejected_results_publication_is_its_status_alone(shared):
-    """The worker hands a rejected result to the outbox as its registration_status and nothing else."""
-    from genreg_ros.node import _Cloud
+    """The pipeline answers a rejected result with its registration_status and nothing else."""
+    from genreg_ros.intake import Cloud
+    from genreg_ros.pipelines import Context, PairPipeline
     from genreg_ros.sync import Pair
 
     src, tgt, _ = make_pair(SMALL_T, 960.0)
-    pair = Pair(_Cloud(src, SRC_FRAME, time.monotonic()), _Cloud(tgt, TGT_FRAME, time.monotonic()), 960 * 10**9, 0)
+    pair = Pair(Cloud(src, SRC_FRAME, time.monotonic()), Cloud(tgt, TGT_FRAME, time.monotonic()), 960 * 10**9, 0)
     result = SimpleNamespace(fitness=0.2, confidence=0.9, tight_fitness=0.1, inlier_ratio=0.1, inlier_rmse=0.01,
                              start="genreg", transformation=np.eye(4), unconstrained=())
     registrar = SimpleNamespace(config=shared.node.config.registration_config(),
                                 register=lambda *a, **k: result)
-    with shared.params(min_fitness=0.5) as h:
-        job = h.node._process(pair, registrar)
+    node = shared.node
+    pipeline = PairPipeline(Context(lambda: node.config, node._tracker, node._report, node._statuses), [registrar])
+    with shared.params(min_fitness=0.5):
+        job = pipeline.process(pair)
     assert job is not None and job.outputs is None
     (status,) = job.status.status
     assert status.level == DiagnosticStatus.ERROR and status.message == "rejected: fitness 0.200 < min_fitness 0.5"
@@ -702,7 +749,7 @@ def test_a_degenerate_result_is_a_warn_naming_the_unconstrained_directions(share
     directions = ("translation along (1.00, 0.00, 0.00)", "rotation about (0.00, 0.00, 1.00)")
     header = Header(frame_id=TGT_FRAME)
     result = _result(unconstrained=directions)
-    (status,) = shared.node._result_status(result, header, SRC_FRAME, "none", 0.01, judge(result, NodeConfig())).status
+    (status,) = shared.node._statuses.result(result, header, SRC_FRAME, "none", 0.01, judge(result, NodeConfig())).status
     v = diag_values(status)
     assert status.level == DiagnosticStatus.WARN
     assert status.message.startswith("degenerate: translation along (1.00, 0.00, 0.00); rotation about (0.00, 0.00, "
@@ -710,7 +757,7 @@ def test_a_degenerate_result_is_a_warn_naming_the_unconstrained_directions(share
     assert v["degenerate"] == "true" and v["unconstrained"] == "; ".join(directions) and v["published"] == "true"
     for plain in (_result(), _result(unconstrained=())):  # a core without the field, or a constrained result
         verdict = judge(plain, NodeConfig())
-        (status,) = shared.node._result_status(plain, header, SRC_FRAME, "none", 0.01, verdict).status
+        (status,) = shared.node._statuses.result(plain, header, SRC_FRAME, "none", 0.01, verdict).status
         assert status.level == DiagnosticStatus.OK and status.message == "published"
         assert diag_values(status)["degenerate"] == "false"
 
@@ -787,9 +834,9 @@ def test_lost_and_silent_input_is_counted_and_warned_with_its_cause(ns, untraine
 
 def test_target_file_errors_are_one_line_and_never_quote_the_file(tmp_path, capfd, monkeypatch):
     def load(path):
-        with pytest.raises(StartupError) as info:
-            RegisterNode._load_target_file(NodeConfig(target_file=str(path), target_frame="map"))
-        assert "\n" not in str(info.value)
+        with pytest.raises(CloudFileError) as info:
+            read_cloud(path)
+        assert "\n" not in str(info.value) and str(info.value).startswith("target_file")
         return str(info.value)
 
     assert "is a directory" in load(tmp_path)

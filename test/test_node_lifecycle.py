@@ -9,8 +9,10 @@ import time
 
 import numpy as np
 import pytest
+import rclpy
 from lifecycle_msgs.msg import State, Transition
 from lifecycle_msgs.srv import ChangeState, GetState
+from rclpy.parameter import Parameter
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import PointCloud2
 from std_srvs.srv import Trigger
@@ -20,7 +22,6 @@ from test_node import (
     TEST_PARAMS,
     check_outputs,
     diag_values,
-    guess_param,
     make_pair,
     node_process,
     redkitchen_pair,
@@ -28,6 +29,7 @@ from test_node import (
 )
 
 from genreg_core.data.rgbd import RGBDSequence
+from genreg_ros.node import RegisterNode, StartupError
 
 
 def change(h, transition_id: int) -> bool:
@@ -99,27 +101,35 @@ def test_transitions_through_the_lifecycle_services_with_a_latched_target(manage
     assert "Traceback" not in log.read_text()
 
 
-def test_target_file_with_crop_radius(ros_namespace, tmp_path):
-    """A fixed target from a PLY file: redkitchen frame 800 plus a copy of it 8 m away (a large map with a
-    look-alike). With a pose estimate (here the ground truth as initial_guess) and target_crop_radius the
-    copy is cut away and frame 801 registers."""
+def test_a_target_file_is_the_fixed_target_and_target_crop_radius_is_refused(ros_namespace, tmp_path,
+                                                                             untrained_checkpoint):
+    """A fixed target from a PLY file (redkitchen frame 800): frame 801 registers against it, the target topic
+    is not subscribed and the target is never stale. target_crop_radius is gone (map mode is the one way to
+    localise in a large map): a node given it stops at start-up with one line saying so."""
     import open3d as o3d
 
     seq = RGBDSequence.redkitchen()
     tgt = seq.points(800, 8).astype(np.float64)
-    cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.r_[tgt, tgt + [8.0, 0.0, 0.0]]))
-    path = tmp_path / "map.ply"
-    assert o3d.io.write_point_cloud(str(path), cloud)
+    path = tmp_path / "target.ply"
+    assert o3d.io.write_point_cloud(str(path), o3d.geometry.PointCloud(o3d.utility.Vector3dVector(tgt)))
     src, _, rec, T_true = redkitchen_pair(801, 800, 300.0)
-    with running_node(f"{ros_namespace}/target_file", SHIPPED_MODEL, target_file=str(path), target_frame="map",
-                      target_crop_radius=4.0, initial_guess=guess_param(T_true)) as h:
+    with running_node(f"{ros_namespace}/target_file", SHIPPED_MODEL, target_file=str(path), target_frame="map") as h:
         assert h.pub_target.get_subscription_count() == 0  # the topic is not subscribed
         h.pub_source.publish(src)
         aligned, tf = h.wait_output(src.header, timeout=30.0)
         check_outputs(aligned, tf, rec, src.header, T_true, src_frame="camera", tgt_frame="map", rot_tol=0.6,
                       trans_tol=0.01)
         time.sleep(0.5)
-        v = h.counters()
-        assert float(v["last.points_target"]) < 1.2 * len(tgt)  # the copy 8 m away was cropped
+        assert 0 < float(h.counters()["last.points_target"]) <= len(tgt)
         s = h.status(after=time.monotonic())
         assert "target cloud" not in s.message, s.message  # a fixed target is never stale
+    ctx = rclpy.Context()
+    rclpy.init(context=ctx)
+    try:
+        overrides = [Parameter("model.checkpoint", value=str(untrained_checkpoint)), Parameter("target_file", value=str(path)),
+                     Parameter("target_frame", value="map"), Parameter("target_crop_radius", value=4.0)]
+        with pytest.raises(StartupError, match=r"unknown parameter 'target_crop_radius' \(removed: use map.enabled") as error:
+            RegisterNode(context=ctx, namespace=f"{ros_namespace}/crop", parameter_overrides=overrides)
+        assert "\n" not in str(error.value)
+    finally:
+        rclpy.shutdown(context=ctx)

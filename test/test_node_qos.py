@@ -27,7 +27,7 @@ from test_node import (
 
 from genreg_core.config import OBJECT_MODEL
 from genreg_core.errors import ConfigError
-from genreg_ros.config import NodeConfig, QosParams
+from genreg_ros.config import QosParams
 from genreg_ros.node import RegisterNode, StartupError, main
 
 LATCHED = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL)
@@ -47,7 +47,6 @@ def test_a_transient_local_target_is_reliable_unless_named_otherwise():
     assert QosParams(target_reliability="best_effort").target_reliability_resolved == "best_effort"
     assert QosParams(target_durability="transient_local", target_reliability="reliable"
                      ).target_reliability_resolved == "reliable"
-    assert RegisterNode._target_reliability(NodeConfig(qos=latched)) == "reliable"  # what the node subscribes with
 
 
 def test_best_effort_with_transient_local_is_refused_with_one_line(ns, tmp_path, capsys):
@@ -86,6 +85,7 @@ def test_a_target_latched_before_the_node_started_is_registered_with_same_reliab
         node = RegisterNode(context=ctx, namespace=ns, parameter_overrides=[Parameter(k, value=v)
                                                                             for k, v in values.items()])
         assert node.config.qos.target_reliability == "same" and node.config.qos.reliability == "best_effort"
+        assert node._subs["target"].qos_profile.reliability == ReliabilityPolicy.RELIABLE  # what it subscribes with
         h = Harness(ctx, ns, node)
         h.wait(lambda: any(diag_values(s).get("received.target") == "1" for m in h.diagnostics for s in m.status),
                20.0, "the latched target received")

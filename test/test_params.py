@@ -203,6 +203,8 @@ def test_descriptors_carry_ranges_and_read_only():
     ("/**:\n  ros__parameters:\n    preprocess: {min_range: 2.0, max_range: 1.0}\n", "min_range"),
     ("/**:\n  ros__parameters:\n    sync:\n      time_jump: 1.0\n",  # a removed parameter says what replaced it
      "unknown parameter 'sync.time_jump' (removed: a stamp more than sync.slop older"),
+    ("/**:\n  ros__parameters:\n    target_crop_radius: 4.0\n",  # one way to localise in a map: map mode
+     "unknown parameter 'target_crop_radius' (removed: use map.enabled"),
     ("/other_node:\n  ros__parameters:\n    bogus: 1\n", None),  # another node's entry is not checked
 ])
 def test_params_file_check(tmp_path, content, text):

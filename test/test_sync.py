@@ -1,4 +1,4 @@
-"""Stamp pairing and the worker hand-over slot (pure Python, no DDS)."""
+"""Stamp pairing, the worker hand-over slot and the in-order outbox (pure Python, no DDS)."""
 
 from __future__ import annotations
 
@@ -8,7 +8,7 @@ import time
 import numpy as np
 import pytest
 
-from genreg_ros.sync import LatestSlot, PairSync
+from genreg_ros.sync import Handover, PairSync
 
 MS = 1_000_000  # ns
 
@@ -109,24 +109,35 @@ def test_random_streams_pair_correctly_and_account_for_every_message(seed):
     assert len(pairs) >= 0.9 * len(both)  # and nearly every tick with both messages is paired
 
 
-def test_latest_slot_replaces_waiting_item():
-    slot = LatestSlot()
+def test_handover_replaces_a_waiting_item_and_numbers_every_item_that_leaves():
+    slot = Handover()
     assert slot.put("a") is None
-    assert slot.put("b") == "a"
-    assert slot.take(timeout=0.1) == "b"
+    assert slot.put("b") == ("a", 0)  # replaced: it leaves first, with the first ticket
+    assert slot.take(timeout=0.1) == ("b", 1)
     t0 = time.monotonic()
     assert slot.take(timeout=0.1) is None
     assert time.monotonic() - t0 >= 0.09
+    slot.put("c")
+    assert slot.clear() == ("c", 2) and slot.clear() is None
+    got: list = []
+    reader = threading.Thread(target=lambda: got.extend(iter(slot.outbox.get, None)))
+    reader.start()
+    slot.outbox.done(2, "c discarded", wait=False)
+    slot.outbox.done(0, "a superseded", wait=False)
+    slot.outbox.done(1, "b registered")
+    slot.outbox.close()
+    reader.join(timeout=2)
+    assert got == ["a superseded", "b registered", "c discarded"]  # in the order they left the slot
 
 
-def test_latest_slot_wakes_worker_and_close_unblocks():
-    slot, got = LatestSlot(), []
+def test_handover_wakes_a_worker_and_close_unblocks():
+    slot, got = Handover(), []
 
     def worker():
         while not slot.closed:
-            item = slot.take(timeout=5.0)
-            if item is not None:
-                got.append(item)
+            taken = slot.take(timeout=5.0)
+            if taken is not None:
+                got.append(taken)
 
     th = threading.Thread(target=worker)
     th.start()
@@ -136,7 +147,7 @@ def test_latest_slot_wakes_worker_and_close_unblocks():
         time.sleep(0.01)
     slot.close()
     th.join(timeout=2)
-    assert got == [1] and not th.is_alive()
+    assert got == [(1, 0)] and not th.is_alive()
 
 
 def test_in_order_hands_results_on_in_ticket_order_and_skips_nones():
@@ -175,3 +186,7 @@ def test_in_order_done_waits_beyond_its_limit_except_for_the_next_ticket():
     assert [box.get(), box.get()] == ["a", "b"]
     assert finished.wait(2) and box.get() == "c"
     late.join()
+    t3, t4 = box.ticket(), box.ticket()
+    box.done(t4, "e", wait=False)  # a caller that must not block (a superseded pair's status): beyond the limit
+    box.done(t3, "d")
+    assert [box.get(), box.get()] == ["d", "e"]

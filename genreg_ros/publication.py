@@ -1,0 +1,171 @@
+"""What register_node publishes for each pair, and the publisher thread that publishes it.
+
+Every pair formed gets one `registration_status` (diagnostic_msgs/DiagnosticArray; header: the pair's source
+stamp and target frame), built by `Statuses`:
+- a registered pair (`Statuses.result`): level and message from the verdict (`genreg_ros.policy`), values
+  confidence, fitness, ..., `published`, `budget`, in map mode `localization`;
+- a pair that is not registered (`Statuses.unanswered`): `published: false`, a `reason` (`dropped.superseded`,
+  `dropped.reset`, `dropped.<decode reason>`, `failed.<reason>`) and the message of its warning, level WARN
+  for a pair replaced or discarded while it waited, ERROR for one that could not be registered.
+A `Publication` is a pair's status and, for a published result, its `Outputs`; `Publishers.run` (the
+publisher thread) takes the publications in pair order (`genreg_ros.sync.InOrder`) and publishes each: the
+status first, then the aligned cloud, transform, pose, tf and generated cloud, encoded on that thread so that
+they overlap the next registration.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import TYPE_CHECKING
+
+from builtin_interfaces.msg import Time
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+from geometry_msgs.msg import PoseWithCovarianceStamped, TransformStamped
+from rclpy.lifecycle import LifecycleNode
+from rclpy.qos import QoSProfile, ReliabilityPolicy
+from sensor_msgs.msg import PointCloud2
+from std_msgs.msg import Header
+
+from genreg_ros.config import NodeConfig
+from genreg_ros.conversions import matrix_to_msg, matrix_to_pose_msg, split_ns
+from genreg_ros.diagnostics import Reporter, Stats
+from genreg_ros.intake import CloudPair
+from genreg_ros.pointcloud2 import DecodedCloud, replace_points, transform_cloud, xyz_to_msg
+from genreg_ros.policy import Level, Verdict
+from genreg_ros.sync import InOrder
+
+if TYPE_CHECKING:
+    from tf2_ros import TransformBroadcaster
+
+    from genreg_core.registration import RegistrationResult
+
+LEVELS = {"ok": DiagnosticStatus.OK, "warn": DiagnosticStatus.WARN, "error": DiagnosticStatus.ERROR}
+OUTPUTS = (("aligned_cloud", PointCloud2), ("transform", TransformStamped), ("generated_cloud", PointCloud2),
+           ("pose", PoseWithCovarianceStamped), ("registration_status", DiagnosticArray))
+
+
+@dataclass(frozen=True)
+class Outputs:
+    """A published result: what to encode and publish, and the worker's timings for the per-pair statistics."""
+
+    header: Header
+    source: DecodedCloud  # every field of the source is kept in the aligned cloud
+    source_frame: str
+    result: RegistrationResult
+    latency: float  # s, from the arrival of the pair's later cloud
+    overhead: float  # s, the node's work besides preprocessing and registration so far (decoding)
+    timings: dict[str, float]
+    low_confidence: bool
+    registered_decoded: bool  # the registered points were the decoded ones (no preprocessing changed them)
+
+
+@dataclass(frozen=True)
+class Publication:
+    """What one pair publishes: its registration_status, then its outputs (None: not published, the status
+    alone)."""
+
+    status: DiagnosticArray
+    outputs: Outputs | None = None
+
+
+def pair_header(pair: CloudPair) -> Header:
+    """The header of a pair's outputs and status: the source stamp and the target frame."""
+    sec, nanosec = split_ns(pair.source_stamp)
+    return Header(stamp=Time(sec=sec, nanosec=nanosec), frame_id=pair.target.frame)
+
+
+class Statuses:
+    """The registration_status messages of one node (status name `<node>: result`, hardware_id its full name)."""
+
+    def __init__(self, node_name: str, hardware_id: str) -> None:
+        self.name = f"{node_name}: result"
+        self.hardware_id = hardware_id
+
+    def result(self, result: RegistrationResult, header: Header, source_frame: str, guess_origin: str,
+               latency: float, verdict: Verdict, light: bool = False) -> DiagnosticArray:
+        """The status of a registered pair: its level and message are the verdict's (`genreg_ros.policy`); in
+        map mode it says the localisation state."""
+        values = {
+            "confidence": f"{result.confidence:.4f}", "fitness": f"{result.fitness:.4f}",
+            "tight_fitness": f"{result.tight_fitness:.4f}", "inlier_ratio": f"{result.inlier_ratio:.4f}",
+            "inlier_rmse_m": f"{result.inlier_rmse:.6f}",
+            "start": result.start, "initial_guess": guess_origin, "published": str(verdict.publish).lower(),
+            "source_frame": source_frame, "target_frame": header.frame_id, "latency_ms": f"{1e3 * latency:.1f}",
+            "degenerate": str(verdict.degenerate).lower(), "unconstrained": "; ".join(verdict.unconstrained),
+            "budget": "light" if light else "full",
+        }
+        if not verdict.publish:
+            values["reason"] = f"failed.{verdict.reason}"
+        if verdict.localization:
+            values["localization"] = verdict.localization
+        return self._array(header, verdict.level, verdict.message, values)
+
+    def unanswered(self, pair: CloudPair, level: Level, counter: str, reason: str, text: str) -> DiagnosticArray:
+        """The status of a pair that was not registered, counted as `counter` (dropped or failed) `.reason`:
+        value `reason` that counter's name, message "<counter> (<reason>): <text>", as the log's warning."""
+        header = pair_header(pair)
+        values = {"published": "false", "reason": f"{counter}.{reason}", "source_frame": pair.source.frame,
+                  "target_frame": header.frame_id}
+        return self._array(header, level, f"{counter} ({reason}): {text}", values)
+
+    def _array(self, header: Header, level: Level, message: str, values: dict[str, str]) -> DiagnosticArray:
+        status = DiagnosticStatus(level=LEVELS[level], name=self.name, message=message, hardware_id=self.hardware_id,
+                                  values=[KeyValue(key=k, value=v) for k, v in values.items()])
+        return DiagnosticArray(header=header, status=[status])
+
+
+class Publishers:
+    """The node's per-pair outputs (lifecycle publishers, QoS depth 5 with `reliability`) and tf."""
+
+    def __init__(self, node: LifecycleNode, reliability: str, stats: Stats,
+                 tf: TransformBroadcaster | None = None) -> None:
+        qos = QoSProfile(depth=5, reliability=ReliabilityPolicy[reliability.upper()])
+        self.pubs = {name: node.create_lifecycle_publisher(kind, name, qos) for name, kind in OUTPUTS}
+        self._node = node
+        self._stats = stats
+        self._tf = tf
+
+    def run(self, outbox: InOrder, config: Callable[[], NodeConfig], report: Reporter) -> None:
+        """The publisher thread: publish each publication of `outbox`, in order, until it closes. An exception
+        is counted (failed.internal_error) and the thread carries on."""
+        while (publication := outbox.get()) is not None:
+            try:
+                self.publish(publication, config().publish_generated)
+            except Exception as exc:  # noqa: BLE001 (keep the thread alive whatever one item does)
+                report.fail("internal_error", f"unexpected {type(exc).__name__} while publishing: {exc}")
+
+    def publish(self, publication: Publication, generated: bool = False) -> None:
+        """Publish one pair's registration_status, then, unless it was not published, encode and publish its
+        result (aligned cloud, transform, pose, tf, with `generated` the generated cloud) and count it."""
+        self.pubs["registration_status"].publish(publication.status)
+        job = publication.outputs
+        if job is None:
+            return
+        result, header = job.result, job.header
+        t0 = time.perf_counter()
+        T_target_source = result.transformation
+        if job.registered_decoded and job.source.points.dtype == result.aligned_source.dtype:
+            aligned = replace_points(header, job.source, result.aligned_source)  # the API moved these points
+        else:
+            aligned = transform_cloud(header, job.source, T_target_source)
+        transform = matrix_to_msg(T_target_source, header, job.source_frame)
+        pose = matrix_to_pose_msg(T_target_source, header, result.covariance)
+        t1 = time.perf_counter()
+        self.pubs["aligned_cloud"].publish(aligned)
+        self.pubs["transform"].publish(transform)
+        self.pubs["pose"].publish(pose)
+        if self._tf is not None:
+            self._tf.sendTransform(transform)
+        if generated:
+            self.pubs["generated_cloud"].publish(xyz_to_msg(header, result.source_generated))
+        t2 = time.perf_counter()
+        self._stats.ok(job.latency, job.overhead + (t2 - t0),
+                       {**job.timings, "encode_ms": 1e3 * (t1 - t0), "publish_ms": 1e3 * (t2 - t1)},
+                       job.low_confidence)
+
+    def destroy(self) -> None:
+        for pub in self.pubs.values():
+            self._node.destroy_lifecycle_publisher(pub)
+        self.pubs.clear()
