@@ -53,7 +53,8 @@ if TYPE_CHECKING:
     from collections.abc import Callable
 
     from genreg_core.localization import MapLocalizer
-    from genreg_core.registration import Registrar, RegistrationResult
+    from genreg_core.registration import Registrar
+    from genreg_core.result import RegistrationResult
 
 
 def _snake(name: str) -> str:

@@ -16,7 +16,7 @@ from typing import TYPE_CHECKING, Literal
 from genreg_ros.config import NodeConfig
 
 if TYPE_CHECKING:
-    from genreg_core.registration import RegistrationResult
+    from genreg_core.result import RegistrationResult
 
 Level = Literal["ok", "warn", "error"]  # the registration_status level (DiagnosticStatus OK, WARN, ERROR)
 

@@ -39,7 +39,7 @@ from genreg_ros.sync import InOrder
 if TYPE_CHECKING:
     from tf2_ros import TransformBroadcaster
 
-    from genreg_core.registration import RegistrationResult
+    from genreg_core.result import RegistrationResult
 
 LEVELS = {"ok": DiagnosticStatus.OK, "warn": DiagnosticStatus.WARN, "error": DiagnosticStatus.ERROR}
 OUTPUTS = (("aligned_cloud", PointCloud2), ("transform", TransformStamped), ("generated_cloud", PointCloud2),

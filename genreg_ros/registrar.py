@@ -17,7 +17,7 @@ from genreg_core.errors import GenRegError
 from genreg_ros.workers import RemoteRegistrar
 
 if TYPE_CHECKING:
-    from genreg_core.registration import RegistrationResult
+    from genreg_core.result import RegistrationResult
 
 
 class Registering(Protocol):

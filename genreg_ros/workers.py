@@ -30,7 +30,7 @@ from genreg_core import errors
 from genreg_core.config import RegistrationConfig
 
 if TYPE_CHECKING:
-    from genreg_core.registration import RegistrationResult
+    from genreg_core.result import RegistrationResult
 
 START_TIMEOUT_S = 300.0  # loading torch, the model, the compiled kernels (a cold numba cache: ~30 s) and a warm-up pair
 GROWTH = 1.25  # a shared-memory block that is too small is replaced by one this much larger than needed

@@ -46,10 +46,12 @@ def test_remote_result_equals_the_in_process_registrar_and_the_truth(remote):
     E = np.linalg.inv(T_true) @ got.transformation
     assert np.degrees(np.arccos(np.clip((np.trace(E[:3, :3]) - 1) / 2, -1, 1))) < 1.0
     assert np.linalg.norm(E[:3, 3]) < 0.02
-    remote.config = RegistrationConfig(refine=RefineConfig(method="none"))  # settings travel with each pair
+    remote.config = RegistrationConfig(refine=RefineConfig(method="none"))  # new settings travel with the next pair
     moved = remote.register(source, target)
     assert not np.array_equal(moved.transformation, got.transformation)
+    assert np.array_equal(remote.register(source, target).transformation, moved.transformation)  # and stay
     remote.config = CONFIG
+    np.testing.assert_array_equal(remote.register(source, target).transformation, got.transformation)
 
 
 def test_core_errors_keep_their_class_and_the_worker_carries_on(remote):
