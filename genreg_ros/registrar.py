@@ -8,6 +8,7 @@ and `genreg_ros.workers.RemoteRegistrar`, a Registrar in a worker process of its
 
 from __future__ import annotations
 
+import threading
 from typing import TYPE_CHECKING, Protocol
 
 import numpy as np
@@ -46,7 +47,8 @@ def load_registrars(checkpoint: str, config: RegistrationConfig, num_points: int
                     workers: int) -> list[Registering]:
     """One registrar per worker: the core's Registrar in this process (`workers` 1), else a worker process
     each (started side by side, after this process has compiled the kernels), each warmed up with a synthetic
-    pair (`Registrar.warm_up`) before it is returned. LoadError if one cannot be loaded (the processes
+    pair (`Registrar.warm_up`) and, for worker processes, one more through the node's hand-over (`round_trip`)
+    before it is returned. LoadError if one cannot be loaded (the processes
     started are closed)."""
     from genreg_core import kernels
     from genreg_core.registration import Registrar
@@ -62,6 +64,7 @@ def load_registrars(checkpoint: str, config: RegistrationConfig, num_points: int
         for r in remote:
             r.wait_ready()
         if remote:
+            round_trip(remote)
             return list(remote)
         local = Registrar.from_checkpoint(checkpoint, config=config, num_points=num_points)
         local.warm_up()  # as each worker process does before it reports ready
@@ -72,6 +75,20 @@ def load_registrars(checkpoint: str, config: RegistrationConfig, num_points: int
     except (RuntimeError, AssertionError, OSError) as exc:  # e.g. a cuda device on a CPU-only torch
         close_registrars(remote)
         raise LoadError(f"cannot load model {checkpoint!r}: {exc}") from None
+
+
+def round_trip(remote: list[RemoteRegistrar]) -> None:
+    """One synthetic pair (`registration.warm_up_pair`) through every worker at once, the way the node hands
+    pairs over (shared memory, the pipe, the result back): the first real pair pays none of that path's
+    first-call costs either."""
+    from genreg_core.registration import warm_up_pair
+
+    pair = warm_up_pair()
+    threads = [threading.Thread(target=r.register, args=pair, daemon=True) for r in remote]
+    for thread in threads:
+        thread.start()
+    for thread in threads:
+        thread.join()
 
 
 def close_registrars(registrars: list[Registering]) -> None:
