@@ -132,7 +132,7 @@ def scene_figures(args: argparse.Namespace, threads: int) -> Figures:
     pair = (sequence.points(SCENE_FRAMES[0]), sequence.points(SCENE_FRAMES[1]))
     scene = replace(SCENE_REGISTRATION, seed=0)
     plain = Registrar.from_checkpoint(args.scene_checkpoint, replace(scene, refine=RefineConfig()))
-    p2plane = Registrar(plain.model, replace(scene, refine=RefineConfig(method="point_to_plane")))
+    p2plane = Registrar(plain.model, replace(scene, refine=RefineConfig(method="point_to_plane")), plain.calibration)
     gicp = Registrar(plain.model, scene, plain.calibration)  # the scene preset: GICP and its tight stage
     params = replace(BaselineParams.metric_scene(threads), icp_voxel_size=SCENE_VOXEL, gicp_voxel_size=SCENE_VOXEL)
     baseline_pairs = [pair] * args.baseline_repeats
