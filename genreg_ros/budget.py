@@ -20,7 +20,7 @@ from dataclasses import replace
 from genreg_core.config import RegistrationConfig
 
 SMOOTHING = 0.2  # weight of the newest full registration in the running mean of their seconds
-PROBE_S = 2.0  # while pairs go light, one that is not late yet is registered in full this often, s: the
+PROBE_S = 10.0  # while pairs go light, one that is not late yet is registered in full this often, s: the
 # expectation follows the load back down
 
 
