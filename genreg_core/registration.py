@@ -134,6 +134,11 @@ class Estimate:
 WARM_UP_POINTS = 20_000  # points per cloud of `Registrar.warm_up`'s synthetic pair
 
 
+def warm_up_config(config: RegistrationConfig) -> RegistrationConfig:
+    """`config` with PDSAC's modes searched whatever the confidence: a warm-up pair runs their path too."""
+    return replace(config, pdsac=replace(config.pdsac, modes_below=1.0))
+
+
 def warm_up_pair(points: int = WARM_UP_POINTS) -> tuple[np.ndarray, np.ndarray]:
     """A deterministic synthetic (source, target) pair, float32, metres: a 4 m room corner (floor, two walls) with
     a box, the target seen from a pose 10 deg and 0.2 m away."""
@@ -266,7 +271,7 @@ class Registrar:
         included, so that first-call costs (allocations, thread pools, kernels loaded from numba's cache, lazy
         imports) are paid before the first real pair. Changes no setting and no later result."""
         config = self.config
-        self.config = replace(config, pdsac=replace(config.pdsac, modes_below=1.0))  # the modes' path too
+        self.config = warm_up_config(config)
         try:
             self.register(*warm_up_pair(points))
         finally:

@@ -47,8 +47,8 @@ def load_registrars(checkpoint: str, config: RegistrationConfig, num_points: int
                     workers: int) -> list[Registering]:
     """One registrar per worker: the core's Registrar in this process (`workers` 1), else a worker process
     each (started side by side, after this process has compiled the kernels), each warmed up with a synthetic
-    pair (`Registrar.warm_up`) and, for worker processes, one more through the node's hand-over (`round_trip`)
-    before it is returned. LoadError if one cannot be loaded (the processes
+    pair before it is returned (`Registrar.warm_up` in this process; for worker processes through the node's
+    hand-over, `round_trip`). LoadError if one cannot be loaded (the processes
     started are closed)."""
     from genreg_core import kernels
     from genreg_core.registration import Registrar
@@ -67,7 +67,7 @@ def load_registrars(checkpoint: str, config: RegistrationConfig, num_points: int
             round_trip(remote)
             return list(remote)
         local = Registrar.from_checkpoint(checkpoint, config=config, num_points=num_points)
-        local.warm_up()  # as each worker process does before it reports ready
+        local.warm_up()  # as `round_trip` warms worker processes
         return [local]
     except GenRegError as exc:
         close_registrars(remote)
@@ -78,13 +78,22 @@ def load_registrars(checkpoint: str, config: RegistrationConfig, num_points: int
 
 
 def round_trip(remote: list[RemoteRegistrar]) -> None:
-    """One synthetic pair (`registration.warm_up_pair`) through every worker at once, the way the node hands
-    pairs over (shared memory, the pipe, the result back): the first real pair pays none of that path's
-    first-call costs either."""
-    from genreg_core.registration import warm_up_pair
+    """Warm every worker at once, as `Registrar.warm_up` warms an in-process one: its synthetic pair (PDSAC's
+    modes included) through the way the node hands pairs over (shared memory, the pipe, the result back), so
+    the first real pair pays no first-call costs on either side. Each worker's settings are restored."""
+    from genreg_core.registration import warm_up_config, warm_up_pair
 
     pair = warm_up_pair()
-    threads = [threading.Thread(target=r.register, args=pair, daemon=True) for r in remote]
+
+    def warm(r: RemoteRegistrar) -> None:
+        settings = r.config
+        r.config = warm_up_config(settings)
+        try:
+            r.register(*pair)
+        finally:
+            r.config = settings
+
+    threads = [threading.Thread(target=warm, args=(r,), daemon=True) for r in remote]
     for thread in threads:
         thread.start()
     for thread in threads:

@@ -32,7 +32,7 @@ from genreg_core.config import RegistrationConfig
 if TYPE_CHECKING:
     from genreg_core.result import RegistrationResult
 
-START_TIMEOUT_S = 300.0  # loading torch, the model, the compiled kernels (a cold numba cache: ~30 s) and a warm-up pair
+START_TIMEOUT_S = 300.0  # loading torch, the model and the compiled kernels (a cold numba cache: ~30 s)
 GROWTH = 1.25  # a shared-memory block that is too small is replaced by one this much larger than needed
 
 
@@ -52,8 +52,8 @@ def _view(block: SharedMemory, layout: tuple[str, tuple[int, ...], int]) -> np.n
 class RemoteRegistrar:
     """A `genreg_core.registration.Registrar` in its own process (spawned; daemon). Not thread-safe: one
     caller thread per instance. `start()` launches the process, `wait_ready()` waits for its model (start
-    several, then wait for each, and they load side by side): a worker is ready once it has loaded its model and
-    registered a warm-up pair (`Registrar.warm_up`); `close()` ends it."""
+    several, then wait for each, and they load side by side): a worker is ready once it has loaded its model
+    (`registrar.round_trip` then warms it with a synthetic pair through `register`); `close()` ends it."""
 
     def __init__(self, checkpoint: str, config: RegistrationConfig, num_points: int | None = None,
                  name: str = "genreg_worker") -> None:
@@ -213,7 +213,6 @@ def _serve(conn: Connection, checkpoint: str, num_points: int | None, config: Re
     try:
         registrar = Registrar.from_checkpoint(checkpoint, config=config, num_points=num_points)
         kernels.compile_all()
-        registrar.warm_up()  # ready means fast: the first real pair pays no first-call costs
     except Exception as exc:  # noqa: BLE001 (reported to the caller, who raises it)
         conn.send(("error", type(exc).__name__, str(exc)))
         return
