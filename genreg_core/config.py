@@ -353,6 +353,23 @@ class LocalizationConfig:
                                   "guessed scan centre.", low=0.5, high=1000.0)
     local_keep: float = setting(1.0, "The local map is kept while the guessed scan centre stays within this "
                                 "many scan radii of its centre (below local_radius).", low=0.0, high=1000.0)
+    map_voxel: float = setting(0.0, "The map is voxelised to this size, m, when it is loaded (0: used as "
+                               "given).", low=0.0, high=1e3)
+    retrieve: int = setting(0, "Without a guess, the place index of a gravity-aligned map (z up, as a LiDAR "
+                            "map) retrieves this many places and headings; each is aligned and verified as a "
+                            "tracked scan, and the most confident wins (0: no index; every place is screened "
+                            "by GenReg instead).", low=0, high=1000)
+    index_spacing: float = setting(2.0, "The place index's places: the free cells of a horizontal grid of this "
+                                   "size, m.", low=0.1, high=100.0)
+    index_radius: float = setting(30.0, "The place index describes the map within this distance, m, of each "
+                                  "place (and a scan within it of its sensor).", low=1.0, high=1000.0)
+    index_band: float = setting(2.0, "The place index's descriptors see structure up to this height, m, above "
+                                "the local ground (ceilings and canopies above it are left out).",
+                                low=0.1, high=100.0)
+    rival_distance: float = setting(4.0, "Two map poses whose positions differ by more than this many map voxels "
+                                    "(or turned by more than PDSAC's mode separation) are distinct: the less "
+                                    "probable bounds the other's confidence (a slide along a road or a "
+                                    "corridor).", low=0.5, high=1e4)
 
     def __post_init__(self) -> None:
         hints = typing.get_type_hints(type(self))

@@ -60,16 +60,18 @@ from genreg_core.confidence import SPACINGS
 from genreg_core.config import SCENE_MODEL, SCENE_REGISTRATION, LocalizationConfig
 from genreg_core.errors import ConfigError, TooFewPointsError
 from genreg_core.geometry import apply_transform
+from genreg_core.place_index import IndexGeometry, PlaceIndex, hit_pose
 from genreg_core.prepare import check_transform, robust_extent, validate_cloud
 from genreg_core.preprocess import voxel_downsample
 from genreg_core.refine import gicp_target
-from genreg_core.registration import Registrar
+from genreg_core.registration import Registrar, distinct_poses
 from genreg_core.result import (
     TRACKING_CALIBRATION,
     Aligned,
     Confidence,
     RegistrationResult,
     Verified,
+    below_rival,
     build_result,
 )
 from genreg_core.score import FITNESS_SPACINGS, TIGHT_SPACINGS, TargetIndex, overlap_shares
@@ -133,6 +135,26 @@ def write_places(path: Path, places: list[np.ndarray]) -> None:
         warnings.warn(f"map places not cached in {path.parent}: {exc.strerror or exc}", stacklevel=3)
 
 
+def read_index(path: Path, geometry: IndexGeometry) -> PlaceIndex | None:
+    """A place index written by `write_index`, or None when the file cannot be read (it is then built again)."""
+    try:
+        with np.load(path) as cached:
+            return PlaceIndex(geometry, cached["centres"], cached["descriptors"])
+    except (OSError, ValueError, KeyError, zipfile.BadZipFile):
+        return None
+
+
+def write_index(path: Path, index: PlaceIndex) -> None:
+    """A place index as one file, whole or absent (written aside, then renamed); a folder that cannot be
+    written leaves it in memory only, with a warning."""
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        np.savez(path.with_suffix(".tmp.npz"), centres=index.centres, descriptors=index.descriptors)
+        os.replace(path.with_suffix(".tmp.npz"), path)
+    except OSError as exc:
+        warnings.warn(f"place index not cached in {path.parent}: {exc.strerror or exc}", stacklevel=3)
+
+
 @dataclass(frozen=True)
 class LocalMap:
     """Tracking's part of the map: the map within a radius of `centre`, indexed for scoring and GICP
@@ -169,12 +191,16 @@ class MapLocalizer:
             raise ConfigError(f"localization.place_points ({config.place_points}) must be at least the "
                               f"registration's min_points ({min_points})")
         finite, _ = validate_cloud(map_xyz, "map", min_points)
+        if config.map_voxel > 0:
+            finite = voxel_downsample(np.asarray(finite, dtype=np.float64), config.map_voxel)
         self.config = config
         self.map = np.ascontiguousarray(finite, dtype=np.float64)
         self.tree = kd_tree(self.map)
         self.voxel_size = float(config.voxel_size) or median_spacing(self.map, tree=self.tree)
         self.threads = config.threads or int(os.environ.get("OMP_NUM_THREADS") or 1)
         self._local: LocalMap | None = None
+        self._whole: LocalMap | None = None  # the whole map prepared for GICP (retrieved places' alignment)
+        self._index: PlaceIndex | None = None
         rng = np.random.default_rng(0)
         sample = self.map if len(self.map) <= EXTENT_SAMPLES else self.map[rng.choice(len(self.map), EXTENT_SAMPLES)]
         _, self.extent = robust_extent(sample)
@@ -257,6 +283,8 @@ class MapLocalizer:
                 return tracked
             searched = self.refined(scan, guess, apply_transform(guess, centroid[None])[0], radius)
             return searched if tracked is None else max(tracked, searched, key=lambda r: r.confidence)
+        if self.config.retrieve:
+            return self.retrieved(scan, (centroid, radius))
         whole = reg.register(scan, self.map)
         places = self.places(radius)
         c = self.config
@@ -295,17 +323,17 @@ class MapLocalizer:
         self._local = LocalMap(np.array(centre, dtype=np.float64), radius, len(rows) == len(self.map), index)
         return self._local
 
-    def track(self, scan: np.ndarray, guess: np.ndarray, geometry: tuple[np.ndarray, float] | None = None
-              ) -> RegistrationResult | None:
+    def track(self, scan: np.ndarray, guess: np.ndarray, geometry: tuple[np.ndarray, float] | None = None,
+              local: LocalMap | None = None) -> RegistrationResult | None:
         """The voxelised scan aligned by GICP from `guess` (T_map_scan) against the local map around it
         (`local`), verified and built into a result as a registration is (`result.build_result`: inlier ratio
         NaN, taken as 1: no network pass; no generated clouds; `start` "initial_guess"). `geometry`: the
         scan's (centroid, radius) from `scan_geometry`, if known. Its confidence is the calibration's tracking
         model's (`tracking_confidence`; without one, uncalibrated as `genreg_core.result` says). None when the
-        map holds too few points around the guess."""
+        map holds too few points around the guess. `local`: the map to align against (default: `local`'s)."""
         t0 = time.perf_counter()
         centroid, radius = geometry or self.scan_geometry(scan)[:2]
-        local = self.local(apply_transform(guess, centroid[None])[0], radius)
+        local = local or self.local(apply_transform(guess, centroid[None])[0], radius)
         if local is None:
             return None
         c = self.config
@@ -328,6 +356,72 @@ class MapLocalizer:
         t2 = time.perf_counter()
         result.timings = {"refine": t1 - t0, "result": t2 - t1, "total": t2 - t0}
         return result
+
+    def place_index(self) -> PlaceIndex:
+        """The map's place index (`genreg_core.place_index`; the index settings), built on first use and kept
+        (and in `cache_dir`, by the map's content hash and the settings)."""
+        if self._index is None:
+            c = self.config
+            geometry = IndexGeometry(spacing=c.index_spacing, radius=c.index_radius, band=c.index_band)
+            path = None if self.cache_dir is None else self.cache_dir / (
+                f"index-{self._key}-s{c.index_spacing:.6g}-r{c.index_radius:.6g}-b{c.index_band:.6g}.npz")
+            self._index = read_index(path, geometry) if path is not None and path.is_file() else None
+            if self._index is None:
+                self._index = PlaceIndex.build(self.map, geometry)
+                if path is not None:
+                    write_index(path, self._index)
+        return self._index
+
+    def whole_map(self) -> LocalMap:
+        """The whole map indexed and prepared for GICP, once: what retrieved places are aligned against."""
+        if self._whole is None:
+            index = TargetIndex(self.map, self.threads, spacing=self.voxel_size)
+            gicp_target(index)
+            self._whole = LocalMap(self.map.mean(axis=0), float("inf"), True, index)
+        return self._whole
+
+    def retrieved(self, scan: np.ndarray, geometry: tuple[np.ndarray, float]) -> RegistrationResult:
+        """A scan without a guess placed by the place index: each of the `retrieve` places and headings it
+        retrieves is aligned by GICP against the whole map and verified as tracking is (`track`); the most
+        confident wins, bounded by its distinct rivals (`chosen`)."""
+        t0 = time.perf_counter()
+        hits = self.place_index().retrieve(scan, self.config.retrieve)
+        t1 = time.perf_counter()
+        whole = self.whole_map()
+        results = [r for h in hits if (r := self.track(scan, hit_pose(h), geometry, whole)) is not None]
+        if not results:  # nothing retrieved near enough to the map to align: the whole map from the identity
+            results = [self.track(scan, np.eye(4), geometry, whole) or self.registrar.register(scan, self.map)]
+        best = self.chosen(results)
+        best.timings = {"retrieve": t1 - t0, "refine": time.perf_counter() - t1,
+                        "total": time.perf_counter() - t0}
+        return best
+
+    def chosen(self, results: Sequence[RegistrationResult]) -> RegistrationResult:
+        """The most confident of several results for one scan, its confidence bounded by the most confident
+        distinct one (`rival_distance` map voxels or PDSAC's mode separation apart: two distinct poses cannot
+        both be right). A rival that lowers the confidence is named among the result's unconstrained motions ("translation along (x,
+        y, z) to a rival pose d m away") and its offset widens the covariance as a mixture of the two poses
+        would (p (1 - p) d d^T on the translation block, p the rival's probability)."""
+        best = max(results, key=lambda r: r.confidence)
+        separation = np.radians(self.registrar.config.pdsac.mode_separation)
+        rivals = [r for r in results if r.confidence > 0 and distinct_poses(
+            r.transformation, best.transformation, separation, self.config.rival_distance * self.voxel_size)]
+        if not rivals:
+            return best
+        rival = max(rivals, key=lambda r: r.confidence)
+        p = rival.confidence
+        if p <= 1.0 - best.confidence:  # the rival bounds nothing
+            return best
+        offset = rival.transformation[:3, 3] - best.transformation[:3, 3]
+        distance = float(np.linalg.norm(offset))
+        covariance = None if best.covariance is None else best.covariance.copy()
+        if covariance is not None:
+            covariance[:3, :3] += p * (1.0 - p) * np.outer(offset, offset)
+        u = offset / max(distance, 1e-12)
+        u = u if u[np.argmax(np.abs(u))] > 0 else -u
+        slide = f"translation along ({u[0]:.2f}, {u[1]:.2f}, {u[2]:.2f}) to a rival pose {distance:.2f} m away"
+        return replace(best, confidence=below_rival(best.confidence, p), covariance=covariance,
+                       unconstrained=(*best.unconstrained, slide))
 
     def screen(self, scan: np.ndarray, places: Sequence[np.ndarray]) -> list[RegistrationResult]:
         """The scan registered against every place (point sets), unrefined, in batches of `batch_size`."""

@@ -172,11 +172,13 @@ class Choice:
     rival: float = 0.0  # the probability that another, distinct pose is right (the best other mode's)
 
 
-def distinct_poses(T_a: np.ndarray, T_b: np.ndarray, separation_rad: float, scale: float = 1.0) -> bool:
+def distinct_poses(T_a: np.ndarray, T_b: np.ndarray, separation_rad: float, translation: float = MODE_TRANSLATION
+                   ) -> bool:
     """Whether two poses are distinct modes: rotations more than `separation_rad` apart, or translations more
-    than `pdsac.MODE_TRANSLATION` times `scale` (1: the normalised frame; `PreparedPair.scale`: input units)."""
+    than `translation` (default `pdsac.MODE_TRANSLATION`: the normalised frame's; times `PreparedPair.scale`
+    in input units)."""
     cos = (np.trace(T_a[:3, :3].T @ T_b[:3, :3]) - 1.0) / 2.0
-    return bool(cos < np.cos(separation_rad) or np.linalg.norm(T_a[:3, 3] - T_b[:3, 3]) > MODE_TRANSLATION * scale)
+    return bool(cos < np.cos(separation_rad) or np.linalg.norm(T_a[:3, 3] - T_b[:3, 3]) > translation)
 
 
 def verified_mode(check: Verifier, target: object, T_best: np.ndarray, best_score: float, start: np.ndarray,
@@ -325,7 +327,8 @@ class Registrar:
         best = results[int(np.argmax(scores))]
         separation = np.radians(cfg.pdsac.mode_separation)
         rival = max((score for r, score in zip(results, scores, strict=True)
-                     if distinct_poses(r.transformation, best.transformation, separation, p.scale)), default=0.0)
+                     if distinct_poses(r.transformation, best.transformation, separation,
+                                     MODE_TRANSLATION * p.scale)), default=0.0)
         more = time.perf_counter() - t0
         timings = first.timings | {"passes": more, "total": first.timings["total"] + more}
         return replace(best, confidence=below_rival(best.confidence, rival), timings=timings, passes=len(results))
