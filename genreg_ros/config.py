@@ -10,9 +10,10 @@ and the params files are generated from the same list:
     python -m genreg_ros.config --write     # after changing a setting: rewrites the files in config/
     python -m genreg_ros.config --check     # exit 1 if a shipped params file is out of date
 
-Three params files are generated from the one list: `config/genreg.yaml` (depth-camera scenes: the core's
+Four params files are generated from the one list: `config/genreg.yaml` (depth-camera scenes: the core's
 scene preset `SCENE_REGISTRATION`, the scene model and two workers: `SCENE_OVERRIDES` below),
-`config/genreg_map.yaml` (map mode: the scene settings, one worker, a latched map: `MAP_OVERRIDES`) and
+`config/genreg_map.yaml` (map mode: the scene settings, one worker, a latched map: `MAP_OVERRIDES`),
+`config/genreg_lidar_map.yaml` (map mode for LiDAR maps: the place index, `LIDAR_MAP_OVERRIDES`) and
 `config/genreg_objects.yaml` (object models: the plain defaults). This module does not import rclpy: it
 holds the settings, the ROS form of a setting's value (`to_ros` / `from_ros`) and the generator.
 
@@ -315,10 +316,15 @@ SCENE_OVERRIDES: dict[str, Any] = {"model.checkpoint": SCENE_MODEL, **registrati
 # latched (reliable, transient_local), the camera best effort (SensorDataQoS)
 MAP_OVERRIDES: dict[str, Any] = {**SCENE_OVERRIDES, "workers": 1, "map.enabled": True, "budget.latency": 0.0,
                                  "qos.target_reliability": "reliable", "qos.target_durability": "transient_local"}
+# LiDAR maps: map mode with the place index (gravity-aligned maps, z up), the map voxelised to 0.2 m on load
+LIDAR_MAP_OVERRIDES: dict[str, Any] = {**MAP_OVERRIDES, "map.localization.retrieve": 8,
+                                       "map.localization.map_voxel": 0.2}
 PROFILES: dict[str, tuple[str, dict[str, Any]]] = {
     "genreg.yaml": (f"depth-camera and indoor scenes (the scene model {SCENE_MODEL})", SCENE_OVERRIDES),
     "genreg_map.yaml": (f"map mode: depth-camera scans localised in a prior map (the scene model {SCENE_MODEL})",
                         MAP_OVERRIDES),
+    "genreg_lidar_map.yaml": (f"map mode: LiDAR scans in a prior LiDAR map (z up; the place index; {SCENE_MODEL})",
+                              LIDAR_MAP_OVERRIDES),
     "genreg_objects.yaml": (f"object models (the object model {OBJECT_MODEL}, clouds of a single object)", {}),
 }
 YAML_HEADER = """\
