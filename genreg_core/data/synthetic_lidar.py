@@ -14,11 +14,14 @@ Conventions:
   nearest primitive surface, plus Gaussian noise of `range_noise` metres along the ray; hits nearer than
   `min_range` or farther than `max_range` are misses.
 - Misses are dropped, or with `keep_misses` emitted as (0, 0, 0) with intensity 0 (as some drivers do).
+  With `dropout` > 0 that share of the rays (drawn at random) returns nothing: a miss whatever it would hit.
 - Intensity in [0, 1]: the hit primitive's reflectivity times |cos| of the incidence angle.
 - Dual returns: a share `duplicate_share` of the hits (rounded to a whole count, drawn without replacement)
   is emitted twice, the exact copy right after its original, as drivers do when both returns coincide.
-- Deterministic given the rng (one noise draw and one duplicate draw per scan); no per-ray Python loops:
-  every primitive is intersected with all rays at once.
+- Time: `scan.time` is each point's firing time in seconds since the scan's start, column / columns x
+  `scan_period` (all beams of a column fire together); a duplicate carries its original's time.
+- Deterministic given the rng (one noise draw, one dropout draw only when `dropout` > 0, and one duplicate
+  draw per scan); no per-ray Python loops: every primitive is intersected with all rays at once.
 
 Primitives (`Scene`): infinite planes (ground, room walls), oriented boxes (a yaw about z), and vertical
 cylinders with caps (poles, trunks, crowns, pillars). The sensor must not start inside a box or cylinder.
@@ -48,12 +51,18 @@ class LidarSensor:
     range_noise: float = 0.015  # standard deviation along the ray, m
     duplicate_share: float = 0.04  # share of hits emitted twice (dual returns)
     keep_misses: bool = False  # emit misses as (0, 0, 0) instead of dropping them
+    scan_period: float = 0.1  # seconds per revolution (10 Hz)
+    dropout: float = 0.0  # share of rays that return nothing (drawn at random per scan)
 
     def __post_init__(self) -> None:
         if len(self.elevations_deg) < 1 or self.columns < 1:
             raise ValueError("a sensor needs at least one beam and one column")
         if not 0.0 <= self.duplicate_share <= 1.0:
             raise ValueError(f"duplicate_share must be in [0, 1], got {self.duplicate_share}")
+        if not 0.0 <= self.dropout <= 1.0:
+            raise ValueError(f"dropout must be in [0, 1], got {self.dropout}")
+        if not self.scan_period > 0.0:
+            raise ValueError(f"scan_period must be positive, got {self.scan_period}")
         if not 0.0 <= self.min_range < self.max_range:
             raise ValueError("need 0 <= min_range < max_range")
 
@@ -79,6 +88,11 @@ class LidarSensor:
         """HDL-64E-like: 64 beams over -24.9..+2 deg, two blocks of 32 (upper 1/3 deg, lower 1/2 deg)."""
         elev = np.concatenate([np.linspace(-24.9, -8.83, 32), np.linspace(-8.33, 2.0, 32)])
         return cls(tuple(elev.tolist()), columns, **kwargs)  # type: ignore[arg-type]
+
+    @classmethod
+    def os128(cls, columns: int = 1024, **kwargs: float | bool) -> LidarSensor:
+        """OS1-128-like: 128 beams evenly spaced over -22.5..+22.5 deg."""
+        return cls.uniform(128, (-22.5, 22.5), columns, **kwargs)
 
     def directions(self) -> np.ndarray:
         """(beams * columns, 3) unit ray directions in the sensor frame, beam-major (ray = b * columns + c)."""
@@ -248,6 +262,7 @@ class LidarScan:
     points: np.ndarray  # (N, 3) float32, m
     intensity: np.ndarray  # (N,) float32 in [0, 1]; 0 for an emitted miss
     ring: np.ndarray  # (N,) uint16, the beam index
+    time: np.ndarray | None = None  # (N,) float32 s since the scan's start, in [0, scan_period); None: unknown
 
     def __len__(self) -> int:
         return len(self.points)
@@ -263,6 +278,8 @@ def lidar_scan(scene: Scene, pose_world_sensor: np.ndarray, rng: np.random.Gener
     t, normal, refl = scene.cast(T[:3, 3], d_sensor @ T[:3, :3].T)
     noisy = t + rng.normal(0.0, sensor.range_noise, size=len(t)) if sensor.range_noise > 0 else t
     hit = np.isfinite(t) & (noisy >= sensor.min_range) & (noisy <= sensor.max_range)
+    if sensor.dropout > 0:
+        hit &= rng.random(len(t)) >= sensor.dropout
     ring = np.repeat(np.arange(sensor.beams, dtype=np.uint16), sensor.columns)
     cos_incidence = np.abs((normal * (d_sensor @ T[:3, :3].T)).sum(1))
     intensity = np.where(hit, refl * cos_incidence, 0.0)
@@ -274,7 +291,9 @@ def lidar_scan(scene: Scene, pose_world_sensor: np.ndarray, rng: np.random.Gener
     if n_dup:
         dup = np.sort(rng.choice(hits, size=n_dup, replace=False))
         idx = np.sort(np.concatenate([idx, dup]), kind="stable")  # each copy right after its original
-    return LidarScan(points[idx].astype(np.float32), intensity[idx].astype(np.float32), ring[idx])
+    time = (idx % sensor.columns) / sensor.columns * sensor.scan_period
+    return LidarScan(points[idx].astype(np.float32), intensity[idx].astype(np.float32), ring[idx],
+                     time.astype(np.float32))
 
 
 def scan(scene: Scene | str, pose_world_sensor: np.ndarray, rng: np.random.Generator,
@@ -456,6 +475,6 @@ def scan_pair(scene: Scene, rng: np.random.Generator, sensor: LidarSensor | None
     source = lidar_scan(scene, pose_s, rng, sensor)
     K = kidnap(rng, source.points.astype(np.float64).mean(0), max_angle_deg, max_translation)
     moved = source.points.astype(np.float64) @ K[:3, :3].T + K[:3, 3]
-    source = LidarScan(moved.astype(np.float32), source.intensity, source.ring)
+    source = LidarScan(moved.astype(np.float32), source.intensity, source.ring, source.time)
     truth = np.linalg.inv(pose_t) @ pose_s @ np.linalg.inv(K)
     return ScanPair(source, target, truth, pose_s, pose_t, K)
