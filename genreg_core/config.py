@@ -359,7 +359,7 @@ class LocalizationConfig:
                             "map) retrieves this many places and headings; each is aligned and verified as a "
                             "tracked scan, and the most confident wins (0: no index; every place is screened "
                             "by GenReg instead).", low=0, high=1000)
-    index_spacing: float = setting(2.0, "The place index's places: the free cells of a horizontal grid of this "
+    index_spacing: float = setting(1.0, "The place index's places: the free cells of a horizontal grid of this "
                                    "size, m.", low=0.1, high=100.0)
     index_radius: float = setting(30.0, "The place index describes the map within this distance, m, of each "
                                   "place (and a scan within it of its sensor).", low=1.0, high=1000.0)

@@ -23,6 +23,17 @@ weights), unrefined (GenReg is rotation invariant: no orientation is searched); 
 of the whole map around each (registration from the candidate's pose as the initial guess), and the most
 confident pose, the whole map's included, wins.
 
+A gravity-aligned map (z up, as LiDAR maps are) can instead be searched through its place index
+(`retrieve` > 0; `genreg_core.place_index`, built once per map and cached with it): the scan's polar height
+image is compared with every place's at every heading, and the `retrieve` best places and headings are
+aligned by GICP against the whole map (prepared once, `whole_map`) and verified as tracked scans are; the
+most confident wins. Neither the whole-map registration nor the place screening runs then. Whenever several
+results are verified for one scan, a distinct pose among them is the chosen one's rival (`chosen`): two
+distinct poses cannot both be right, so the confidence is at most 1 - the rival's; the rival is named
+among the result's `unconstrained` motions ("translation along (x, y, z) to a rival pose d m away": a
+slide along a road or a corridor whose structure repeats) and widens the covariance. The map may be
+voxelised on load (`map_voxel`).
+
 With a guess (tracking), the scan is aligned by GICP from the guess against the map around the guessed
 scan position (`local_radius` scan radii; the whole map when it fits), prepared once per region
 (`refine.gicp_target`: its covariances and k-d tree), with no network pass. Its result is built as a
@@ -399,7 +410,8 @@ class MapLocalizer:
     def chosen(self, results: Sequence[RegistrationResult]) -> RegistrationResult:
         """The most confident of several results for one scan, its confidence bounded by the most confident
         distinct one (`rival_distance` map voxels or PDSAC's mode separation apart: two distinct poses cannot
-        both be right). A rival that lowers the confidence is named among the result's unconstrained motions ("translation along (x,
+        both be right). A rival that lowers the confidence, or is at least half as probable as the pose, is named
+        among the result's unconstrained motions ("translation along (x,
         y, z) to a rival pose d m away") and its offset widens the covariance as a mixture of the two poses
         would (p (1 - p) d d^T on the translation block, p the rival's probability)."""
         best = max(results, key=lambda r: r.confidence)
@@ -410,7 +422,7 @@ class MapLocalizer:
             return best
         rival = max(rivals, key=lambda r: r.confidence)
         p = rival.confidence
-        if p <= 1.0 - best.confidence:  # the rival bounds nothing
+        if p <= 1.0 - best.confidence and p < best.confidence / 2:  # it neither bounds nor rivals the pose
             return best
         offset = rival.transformation[:3, 3] - best.transformation[:3, 3]
         distance = float(np.linalg.norm(offset))

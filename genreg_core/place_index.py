@@ -34,13 +34,15 @@ from scipy.ndimage import minimum_filter
 from genreg_core.errors import TooFewPointsError
 
 EMPTY = np.float32(np.inf)  # a raster cell without points
+GROUND_REACH = 15.0  # a scan's ground under its sensor is estimated from the cells within this many metres
+GROUND_QUANTILE = 0.2  # ... as this quantile of their local ground
 
 
 @dataclass(frozen=True)
 class IndexGeometry:
     """The shape of the place descriptors (every field in metres unless counted)."""
 
-    spacing: float = 2.0  # places: one per free grid cell of this size
+    spacing: float = 1.0  # places: one per free grid cell of this size
     radius: float = 30.0  # descriptor reach around a place
     rings: int = 15
     sectors: int = 60
@@ -189,12 +191,15 @@ class PlaceIndex:
         if len(near) < 10:
             raise TooFewPointsError(f"the scan has {len(near)} points within {g.radius} m of its origin; "
                                     "the place index needs its surroundings")
-        raster = height_image(np.vstack([near, np.zeros((1, 3))]), g, margin=g.radius)
+        raster = height_image(near, g, margin=g.radius)
         at = raster.cells(np.zeros((1, 2)))
-        ground = raster.ground[at[0, 0], at[0, 1]]
-        if not np.isfinite(ground) or ground >= 0.0:  # the origin alone: no ground seen under the sensor
-            below = near[:, 2][np.einsum("ij,ij->i", near[:, :2], near[:, :2]) < 100.0]
-            ground = np.float32(np.quantile(below, 0.05)) if len(below) else np.float32(0.0)
+        # the ground under the sensor: a low quantile of the cells' lowest points within GROUND_REACH (most
+        # cells near a sensor see the ground; walls and cars only raise the upper ones)
+        reach = int(GROUND_REACH / g.cell)
+        window = raster.ground[max(at[0, 0] - reach, 0): at[0, 0] + reach + 1,
+                               max(at[0, 1] - reach, 0): at[0, 1] + reach + 1]
+        seen = window[np.isfinite(window)]
+        ground = float(np.quantile(seen, GROUND_QUANTILE)) if len(seen) else float(near[:, 2].min())
         return describe(raster, at, Stencil(g))[0], float(ground)
 
     def retrieve(self, scan_xyz: np.ndarray, count: int, chunk: int = 4096) -> list[Hit]:

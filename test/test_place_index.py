@@ -1,0 +1,159 @@
+"""The place index (genreg_core.place_index) and MapLocalizer's global localisation with it, against
+independent truths: brute-force reference code for the FFT shift search and the descriptors, the sensor
+poses that made synthetic LiDAR scans, and the period of a street whose facades repeat exactly (every
+position along it one period apart looks the same: no pose may be confident there)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from genreg_core.config import LocalizationConfig
+from genreg_core.data.synthetic_lidar import LidarSensor, Scene, lidar_scan, sensor_pose, street_scene
+from genreg_core.geometry import apply_transform
+from genreg_core.localization import MapLocalizer
+from genreg_core.metrics import transform_errors
+from genreg_core.place_index import (
+    IndexGeometry,
+    PlaceIndex,
+    Stencil,
+    describe,
+    height_image,
+    shift_distances,
+    spectra,
+)
+from genreg_core.preprocess import voxel_downsample
+
+SENSOR = LidarSensor.uniform(16, (-25.0, 15.0), 720, max_range=60.0)
+PLACED_RE_DEG, PLACED_TE_M = 2.0, 0.25  # a LiDAR scan is placed within these
+
+
+def fused_map(scene: Scene, xs: np.ndarray, voxel: float = 0.15) -> np.ndarray:
+    """Scans along the line y = 0 at 1.8 m (heading +x), moved into the world by their poses, voxelised."""
+    rng = np.random.default_rng(0)
+    parts = []
+    for x in xs:
+        T = sensor_pose(float(x), 0.0, 1.8)
+        parts.append(apply_transform(T, lidar_scan(scene, T, rng, SENSOR).points.astype(np.float64)))
+    return voxel_downsample(np.concatenate(parts), voxel)
+
+
+@pytest.fixture(scope="module")
+def street() -> tuple[Scene, np.ndarray]:
+    scene = street_scene(3, length=160.0)
+    return scene, fused_map(scene, np.arange(-70.0, 70.1, 4.0))
+
+
+def terrace() -> Scene:
+    """A straight street 360 m long with identical houses every 12 m on both sides: along x, the world
+    repeats with a period of 12 m (the sensor's 60 m range never sees an end)."""
+    s = Scene("terrace")
+    s.add_plane((0, 0, 0), (0, 0, 1), 0.3)
+    for x in np.arange(-180.0, 180.1, 12.0):
+        for side in (1, -1):
+            s.add_box((x, side * 12.0, 4.0), (9.0, 6.0, 8.0), 0.0, 0.6)  # a house
+            s.add_box((x - 3.0, side * 8.6, 1.0), (1.5, 0.8, 2.0), 0.0, 0.8)  # its porch
+        s.add_cylinder(x + 4.0, 6.5, 0.15, 0.0, 5.0, 0.9)  # a lamp post
+    return s
+
+
+def test_fft_shift_distances_equal_the_brute_force_scan_context_distance() -> None:
+    rng = np.random.default_rng(1)
+    rings, sectors = 7, 24
+    query = rng.random((rings, sectors)) * (rng.random((rings, sectors)) < 0.6)
+    candidates = rng.random((5, rings, sectors)) * (rng.random((5, rings, sectors)) < 0.6)
+    got = shift_distances(spectra(query[None]), spectra(candidates), sectors)
+
+    def cosine(a: np.ndarray, b: np.ndarray) -> float:
+        na, nb = np.linalg.norm(a), np.linalg.norm(b)
+        return 0.0 if na == 0 or nb == 0 else float(a @ b / (na * nb))
+
+    for k in range(5):
+        for s in range(sectors):
+            # candidate sector j + s against the query's sector j
+            expected = 1.0 - np.mean([cosine(query[:, j], candidates[k, :, (j + s) % sectors]) for j in range(sectors)])
+            assert got[k, s] == pytest.approx(expected, abs=1e-5)
+
+
+def test_descriptor_bins_hold_the_highest_point_of_each_polar_bin_by_brute_force() -> None:
+    g = IndexGeometry(radius=10.0, rings=5, sectors=8, band=2.0, cell=0.25, ground_cells=3)
+    rng = np.random.default_rng(2)
+    ground = np.column_stack([rng.uniform(-12, 12, (40_000, 2)), np.zeros(40_000)])  # flat ground at z = 0
+    # one post of known height in each of a few bins, well inside them (away from bin edges)
+    posts = []
+    for ring, sector, height in [(1, 0, 0.7), (3, 2, 1.5), (4, 5, 1.9), (2, 7, 2.6)]:  # 2.6: above the band
+        r = (ring + 0.5) * g.radius / g.rings
+        a = -np.pi + (sector + 0.5) * 2 * np.pi / g.sectors
+        z = np.linspace(0.0, height, 30)
+        posts.append(np.column_stack([np.full(30, r * np.cos(a)), np.full(30, r * np.sin(a)), z]))
+    cloud = np.vstack([ground, *posts])
+    raster = height_image(cloud, g, margin=g.radius)
+    got = describe(raster, raster.cells(np.zeros((1, 2))), Stencil(g))[0]
+    expected = np.zeros((g.rings, g.sectors))
+    expected[1, 0], expected[3, 2], expected[4, 5] = 0.7, 1.5, 1.9
+    expected[2, 7] = max(z for z in np.linspace(0.0, 2.6, 30) if z <= 2.0)  # its highest point within the band
+    np.testing.assert_allclose(got, expected, atol=1e-5)
+
+
+def test_retrieval_finds_the_place_and_heading_of_held_out_scans(street: tuple[Scene, np.ndarray]) -> None:
+    scene, map_xyz = street
+    index = PlaceIndex.build(map_xyz, IndexGeometry())
+    rng = np.random.default_rng(3)
+    found = 0
+    for _ in range(10):
+        x, y, yaw = rng.uniform(-55, 55), rng.uniform(-1.5, 1.5), rng.uniform(-np.pi, np.pi)
+        scan = lidar_scan(scene, sensor_pose(x, y, 1.8, yaw), rng, SENSOR).points.astype(np.float64)
+        hits = index.retrieve(scan, 8)
+        turned = [abs(np.angle(np.exp(1j * (h.yaw - yaw)))) for h in hits]
+        near = [np.hypot(h.centre[0] - x, h.centre[1] - y) for h in hits]
+        found += any(d <= 1.5 and a <= np.radians(9.0) for d, a in zip(near, turned, strict=True))
+        assert all(abs(h.centre[2] - 1.8) < 0.3 for h in hits[:1])  # the sensor's height above the ground
+    assert found >= 8
+
+
+def test_global_localisation_with_the_index_places_held_out_scans_and_never_confidently_wrong(
+        street: tuple[Scene, np.ndarray], tmp_path: object) -> None:
+    scene, map_xyz = street
+    config = LocalizationConfig(retrieve=8, map_voxel=0.2)
+    loc = MapLocalizer(map_xyz, config=config, cache_dir=tmp_path)
+    rng = np.random.default_rng(4)
+    placed = 0
+    for _ in range(8):
+        T = sensor_pose(rng.uniform(-55, 55), rng.uniform(-1.5, 1.5), 1.8, rng.uniform(-np.pi, np.pi))
+        result = loc.localize(lidar_scan(scene, T, rng, SENSOR).points)
+        re, te = transform_errors(result.transformation, T)
+        right = re < PLACED_RE_DEG and te < PLACED_TE_M
+        placed += right
+        assert right or result.confidence < 0.5, (re, te, result.confidence)
+        assert result.timings["retrieve"] < result.timings["total"]
+    assert placed >= 6
+    # the index was cached with the map: a second localizer reads the same descriptors
+    again = MapLocalizer(map_xyz, config=config, cache_dir=tmp_path)
+    np.testing.assert_array_equal(again.place_index().descriptors, loc.place_index().descriptors)
+
+
+def test_a_street_that_repeats_is_never_confident_and_the_slide_along_it_is_named() -> None:
+    scene = terrace()
+    map_xyz = fused_map(scene, np.arange(-96.0, 96.1, 8.0))
+    loc = MapLocalizer(map_xyz, config=LocalizationConfig(retrieve=8, map_voxel=0.2))
+    rng = np.random.default_rng(5)
+    for x in (-30.0, 5.0, 41.0):
+        T = sensor_pose(x, rng.uniform(-1.0, 1.0), 1.8, rng.uniform(-np.pi, np.pi))
+        result = loc.localize(lidar_scan(scene, T, rng, SENSOR).points)
+        offset = result.transformation[:3, 3] - T[:3, 3]
+        assert result.confidence < 0.5, (offset, result.confidence)
+        # wherever it was put, it is a whole number of periods along the street from the truth
+        assert abs(offset[1]) < 0.3 and abs(offset[0] / 12.0 - round(offset[0] / 12.0)) < 0.05
+        slides = [u for u in result.unconstrained if "rival pose" in u]
+        assert slides and slides[0].startswith("translation along (1.00, ")
+        assert result.covariance[0, 0] > 1.0  # the covariance spans the rival, metres along the street
+
+
+def test_a_scan_of_another_place_is_not_confident(street: tuple[Scene, np.ndarray]) -> None:
+    _, map_xyz = street
+    loc = MapLocalizer(map_xyz, config=LocalizationConfig(retrieve=8, map_voxel=0.2))
+    rng = np.random.default_rng(6)
+    other = street_scene(11, length=160.0)
+    for _ in range(3):
+        T = sensor_pose(rng.uniform(-50, 50), rng.uniform(-1.0, 1.0), 1.8, rng.uniform(-np.pi, np.pi))
+        assert loc.localize(lidar_scan(other, T, rng, SENSOR).points).confidence < 0.5
