@@ -21,8 +21,8 @@ with doorways, furniture), a ceiling 3 m above the floor; `World.indoor` runs al
 (the last of the bottom row, or of the first column) is a park: open ground, trees, benches, lamps, a
 fountain and a pavilion, crossed diagonally by a footpath that is also a road. The northern perimeter street
 is lined on both sides by identical terraced houses repeating every `TERRACE_PERIOD` m (in phase on both
-sides, lamp poles every two houses, no other furniture): along it a scan matches itself shifted by a
-multiple of the period (`World.terrace` is its stretch).
+sides, a lamp pole at every party wall, no other furniture): along it, out of reach of the side streets, a
+scan matches the scans a whole number of periods along (`World.terrace`: its centre-line).
 
 Free space: every primitive reaching into the height band 0.2-3 m keeps at least `ROAD_CLEARANCE` m away
 from a road centre-line and `CORRIDOR_CLEARANCE` m from a corridor centre-line, so sensors placed by
@@ -53,7 +53,7 @@ from tqdm import tqdm
 
 from genreg_core.data.synthetic_lidar import LidarScan, LidarSensor, Scene, lidar_scan, sensor_pose
 
-WORLD_VERSION = 1  # bump when the generator's output changes: part of the map cache key
+WORLD_VERSION = 2  # bump when the generator's output changes: part of the map cache key
 KERB = 0.15  # platform (sidewalk) height, m
 SIDEWALK = 3.0  # sidewalk width between the kerb and the building zone, m
 OUTER = 20.0  # depth of the outer ring of buildings, m
@@ -533,15 +533,14 @@ def campus_world(seed: int = 0, blocks: tuple[int, int] = (4, 3)) -> World:
     _buildings(b, rng, _Edge(np.array([kerb_e, kerb_s]), np.array([0.0, 1.0]), np.array([1.0, 0.0])),
                0.0, kerb_n - kerb_s, gapless=True, back=xmax - kerb_e)
 
-    # street furniture (the terraced street: lamp poles every two houses, in phase on both sides, nothing else)
+    # street furniture (the terraced street: a lamp pole at every party wall, both sides, nothing else)
     for k, x in enumerate(rx):
         crossings = [(y - ry[0], rwy[m] / 2) for m, y in enumerate(ry)]
         _furniture(b, rng, np.array([x, ry[0]]), np.array([x, ry[-1]]), rwx[k] / 2, crossings)
     for k, y in enumerate(ry[:-1]):
         crossings = [(x - rx[0], rwx[m] / 2) for m, x in enumerate(rx)]
         _furniture(b, rng, np.array([rx[0], y]), np.array([rx[-1], y]), rwy[k] / 2, crossings)
-    for x in np.arange(phase + 2 * TERRACE_PERIOD * np.ceil((rx[0] - phase) / (2 * TERRACE_PERIOD)), rx[-1],
-                       2 * TERRACE_PERIOD):
+    for x in np.arange(phase + TERRACE_PERIOD * np.ceil((rx[0] - phase) / TERRACE_PERIOD), rx[-1], TERRACE_PERIOD):
         if all(abs(x - xc) > rwx[m] / 2 + 1.0 for m, xc in enumerate(rx)):
             for side in (1.0, -1.0):
                 b.cylinder(x, ry[-1] + side * (rwy[-1] / 2 + 1.0), 0.1, 0.0, 6.0, 0.9)
@@ -614,17 +613,18 @@ def cull_radius(sensor: LidarSensor) -> float:
 
 @dataclass
 class SectorScene(Scene):
-    """A `Scene` whose `cast` bins the rays into `sectors` azimuth sectors (world frame) and intersects each
-    ray only with the boxes and cylinders whose bounding circle its sector can meet; planes meet all rays.
+    """A `Scene` whose `cast` bins the rays into `sectors` azimuth sectors (world frame; 0: one per 1024 rays,
+    64 to 256) and intersects each ray only with the boxes and cylinders whose bounding circle its sector can
+    meet; planes meet all rays.
     A ray's xy path is a half-line at its azimuth, so it can only hit a footprint inside a circle of radius r
     at distance D if its azimuth is within asin(r / D) of the circle's; circles holding the origin meet every
     sector. Same hits, same arithmetic per ray and primitive, same ties (planes before boxes before
     cylinders, lower index first) as `Scene.cast`: results are identical, bit for bit."""
 
-    sectors: int = 128
+    sectors: int = 0
 
     @classmethod
-    def of(cls, scene: Scene, sectors: int = 128) -> SectorScene:
+    def of(cls, scene: Scene, sectors: int = 0) -> SectorScene:
         return cls(**{f.name: getattr(scene, f.name) for f in dataclasses.fields(Scene)}, sectors=sectors)
 
     def cast(self, origin: np.ndarray, directions: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -633,7 +633,7 @@ class SectorScene(Scene):
         best, normal, refl = Scene.cast(subset(self, np.zeros(0, dtype=int), np.zeros(0, dtype=int)), o, d)
         if not (len(self.box_yaw) or len(self.cylinders)):
             return best, normal, refl
-        S = self.sectors
+        S = self.sectors or int(np.clip(len(d) // 1024, 64, 256))
         scale = S / (2.0 * np.pi)
         ray_sector = np.minimum(((np.arctan2(d[:, 1], d[:, 0]) + np.pi) * scale).astype(np.int64), S - 1)
         order = np.argsort(ray_sector, kind="stable")
@@ -664,7 +664,7 @@ class SectorScene(Scene):
 
 
 def culled_scan(scene: Scene, pose_world_sensor: np.ndarray, rng: np.random.Generator,
-                sensor: LidarSensor | None = None, sectors: int = 128) -> LidarScan:
+                sensor: LidarSensor | None = None, sectors: int = 0) -> LidarScan:
     """`lidar_scan` of `scene` at the pose, fast in large scenes: the primitives within `cull_radius` of the
     sensor (`scene_near`), cast by azimuth sector (`SectorScene`). The same scan as `lidar_scan(scene, ...)`
     given the same rng, bit for bit."""
@@ -744,25 +744,29 @@ def test_poses(world: World, n: int, rng: np.random.Generator, height: float = 1
     if not lines:
         raise ValueError(f"world {world.name!r} has no {where} centre-lines")
     lane = LANE if where == "roads" else INDOOR_LANE
-    segs = [(a, c) for line in lines for a, c in itertools.pairwise(line)]
-    lengths = np.array([np.linalg.norm(c - a) for a, c in segs])
+    a, c = (np.array([seg[k] for line in lines for seg in itertools.pairwise(line)]) for k in (0, 1))
+    lengths = np.linalg.norm(c - a, axis=1)
+    u = (c - a) / lengths[:, None]
     everything = world.roads + world.indoor
-    near = scene_near(world.scene, np.zeros(2), np.inf)
     out: list[np.ndarray] = []
-    for _ in range(1000 * max(n, 1)):
-        if len(out) == n:
+    for _ in range(100):  # batches of candidates; the free ones kept in order
+        if sum(len(o) for o in out) >= n:
             break
-        a, c = segs[rng.choice(len(segs), p=lengths / lengths.sum())]
-        u = (c - a) / np.linalg.norm(c - a)
-        xy = a + rng.uniform(0.0, 1.0) * (c - a) + np.array([-u[1], u[0]]) * rng.choice([-1.0, 1.0]) * \
-            rng.uniform(MIN_OFFSET, lane)
-        p = np.array([xy[0], xy[1], height])
-        if distance_to_lines(p[None], everything)[0] < MIN_OFFSET or inside(near, p[None], 0.05)[0]:
-            continue
-        out.append(_yaw_pose(p[0], p[1], height, rng.uniform(-np.pi, np.pi)))
-    if len(out) < n:
-        raise RuntimeError(f"found only {len(out)} of {n} free test poses")
-    return np.asarray(out).reshape(-1, 4, 4)
+        m = max(2 * n, 64)
+        k = rng.choice(len(a), size=m, p=lengths / lengths.sum())
+        along, side = rng.uniform(0.0, 1.0, m), rng.choice([-1.0, 1.0], size=m)
+        offset, yaw = rng.uniform(MIN_OFFSET, lane, m), rng.uniform(-np.pi, np.pi, m)
+        xy = a[k] + along[:, None] * (c[k] - a[k]) + np.stack([-u[k, 1], u[k, 0]], 1) * (side * offset)[:, None]
+        p = np.column_stack([xy, np.full(m, height)])
+        ok = (distance_to_lines(p, everything) >= MIN_OFFSET) & ~inside(world.scene, p, 0.05)
+        out.append(np.array([_yaw_pose(x, y, height, h) for (x, y, _), h in zip(p[ok], yaw[ok])]).reshape(-1, 4, 4))
+    poses = np.concatenate(out)[:n] if out else np.zeros((0, 4, 4))
+    if len(poses) < n:
+        raise RuntimeError(f"found only {len(poses)} of {n} free test poses")
+    return poses
+
+
+test_poses.__test__ = False  # type: ignore[attr-defined]  # a pose sampler, not a pytest test (when imported)
 
 
 # ----------------------------------------------------------------------------- movers and scans
