@@ -1,0 +1,83 @@
+"""scripts/bench_lidar_map.py --quick: it runs, its table parses, and its placed share agrees with a truth the
+test works out itself (the held-out poses drawn again from the world module, errors computed here, the truth
+checked to put a scan onto the map)."""
+
+from __future__ import annotations
+
+import json
+import re
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from genreg_core.data import lidar_world as lw
+
+REPO = Path(__file__).resolve().parent.parent
+SCANS = 4
+
+
+def rotation_deg(R: np.ndarray) -> float:
+    return float(np.degrees(np.arccos(np.clip((np.trace(R) - 1.0) / 2.0, -1.0, 1.0))))
+
+
+def median_gap(points: np.ndarray, T: np.ndarray, tree: cKDTree) -> float:
+    """Median distance (m) from the points moved by T (x' = R x + t) to the nearest map point."""
+    return float(np.median(tree.query(points @ T[:3, :3].T + T[:3, 3], k=1)[0]))
+
+
+def table_rows(report: str) -> dict[str, list[str]]:
+    """Markdown table rows by their first cell."""
+    rows = {}
+    for line in report.splitlines():
+        if line.startswith("| ") and not line.startswith("|---"):
+            cells = [c.strip() for c in line.strip().strip("|").split("|")]
+            rows[cells[0]] = cells
+    return rows
+
+
+def test_quick_global_placed_share_matches_an_independent_truth(tmp_path):
+    out = tmp_path / "run"
+    done = subprocess.run(
+        [sys.executable, "scripts/bench_lidar_map.py", "--quick", "--sections", "global", "--scans", str(SCANS),
+         "--indoor-scans", "0", "--threads", "2", "--no-progress", "--out", str(out)],
+        check=False, cwd=REPO, capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0, done.stderr[-3000:]
+    report = (out / "report.md").read_text()
+    assert report.strip() in done.stdout
+    assert re.search(r"load average at start \d+\.\d+", report) and "load average at end" in report
+    row = table_rows(report)["roads"]
+    n, placed_cell = int(row[1]), row[2]
+    placed_reported = int(placed_cell.split("/")[0])
+    assert n == SCANS and placed_cell.startswith(f"{placed_reported}/{SCANS}")
+    for cell in row[5:8]:  # median, p95 and retrieval milliseconds
+        assert float(cell) > 0
+
+    results = json.loads((out / "results.json").read_text())
+    meta = results["meta"]
+    records = [r for r in results["records"] if r["section"] == "global" and r["kind"] == "roads"]
+    assert len(records) == SCANS and not meta["train"] and meta["seed"] >= 7
+
+    # the truth, drawn again: the world's held-out poses from the documented random stream
+    world = lw.campus_world(meta["seed"], tuple(meta["blocks"]))
+    truth = lw.test_poses(world, SCANS, np.random.default_rng([meta["seed"], meta["streams"]["roads"]]))
+    tree = cKDTree(lw.cached_map(world))
+    scan = lw.culled_scan(world.scene, truth[0], np.random.default_rng(0)).points.astype(np.float64)
+    shifted = truth[0].copy()
+    shifted[:3, 3] += [1.0, 1.0, 0.0]
+    assert median_gap(scan, truth[0], tree) < 0.1  # the truth is T_map_scan: the scan lies on the map
+    assert median_gap(scan, shifted, tree) > 0.3
+
+    placed = []
+    for rec, T in zip(records, truth):
+        E = np.asarray(rec["estimate"])
+        re_deg, te = rotation_deg(E[:3, :3].T @ T[:3, :3]), float(np.linalg.norm(E[:3, 3] - T[:3, 3]))
+        assert np.allclose(rec["truth"], T)
+        assert abs(te - rec["te_m"]) < 1e-6 and abs(re_deg - rec["re_deg"]) < 1e-3
+        placed.append(re_deg < meta["max_re_deg"] and te < meta["max_te_m"])
+        confident_wrong = rec["confidence"] >= meta["gate"] and not placed[-1]
+        assert rec["confident_wrong"] == confident_wrong
+    assert sum(placed) == placed_reported
+    assert sum(placed) >= SCANS // 2, f"only {sum(placed)} of {SCANS} held-out scans placed on a one-block world"
