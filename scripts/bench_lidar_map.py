@@ -178,6 +178,18 @@ def fmt(value: float, digits: int = 0) -> str:
     return "-" if value is None or not np.isfinite(value) else f"{value:.{digits}f}"
 
 
+def code_state() -> str:
+    """The commit the run imports and the files of the package that differ from it (uncommitted)."""
+    def git(*cmd: str) -> str:
+        done = subprocess.run(["git", *cmd], capture_output=True, text=True, check=False,
+                              cwd=Path(__file__).resolve().parent.parent)
+        return done.stdout.strip() if done.returncode == 0 else "?"
+
+    dirty = git("diff", "--name-only", "HEAD", "--", "genreg_core", "genreg_ros", "genreg_bench").split()
+    return f"commit {git('rev-parse', '--short', 'HEAD')}" + (f" with uncommitted changes to {', '.join(dirty)}"
+                                                              if dirty else "")
+
+
 def load_text() -> str:
     a, b, c = os.getloadavg()
     return f"{a:.2f} {b:.2f} {c:.2f}"
@@ -804,14 +816,14 @@ def main() -> int:
                             "streams": STREAMS, "max_re_deg": MAX_RE_DEG, "max_te_m": MAX_TE_M, "gate": GATE,
                             "indoor_height": INDOOR_HEIGHT, "load_average_start": os.getloadavg(),
                             "date": time.strftime("%Y-%m-%d %H:%M:%S %Z"), "cores": os.cpu_count(),
-                            "config": dataclasses.asdict(lidar_config())}
+                            "config": dataclasses.asdict(lidar_config()), "code": code_state()}
     report = Report(out, meta)
     report.add(f"# GenReg LiDAR map localisation ({'training' if a.train else 'held-out'} worlds: seed {a.seed}, "
                f"off-map seed {a.offmap_seed}; blocks {a.blocks[0]}x{a.blocks[1]})", "",
                f"Threads {a.threads} (torch {torch.get_num_threads()}, OMP_NUM_THREADS {os.environ['OMP_NUM_THREADS']}), "
                f"{os.cpu_count()} cores, load average at start {load_text()}; profile: "
                f"retrieve {lidar_config().retrieve}, map_voxel {lidar_config().map_voxel:g} m; sections "
-               f"{','.join(a.sections)}.", "")
+               f"{','.join(a.sections)}; code: {code_state()}.", "")
     t0 = time.perf_counter()
     bench = Bench(a, report, figures)
     runs: dict[str, Callable[[], None]] = {
