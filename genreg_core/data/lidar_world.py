@@ -53,7 +53,7 @@ from tqdm import tqdm
 
 from genreg_core.data.synthetic_lidar import LidarScan, LidarSensor, Scene, lidar_scan, sensor_pose
 
-WORLD_VERSION = 2  # bump when the generator's output changes: part of the map cache key
+WORLD_VERSION = 3  # bump when the generator's output changes: part of the map cache key
 KERB = 0.15  # platform (sidewalk) height, m
 SIDEWALK = 3.0  # sidewalk width between the kerb and the building zone, m
 OUTER = 20.0  # depth of the outer ring of buildings, m
@@ -524,6 +524,9 @@ def campus_world(seed: int = 0, blocks: tuple[int, int] = (4, 3)) -> World:
     b.rect(xmin, xmax, kerb_n, ymax, 0.0, KERB, 0.35)
     b.rect(xmin, kerb_w, kerb_s, kerb_n, 0.0, KERB, 0.35)
     b.rect(kerb_e, xmax, kerb_s, kerb_n, 0.0, KERB, 0.35)
+    for cx0, cx1 in ((xmin, kerb_w - SIDEWALK), (kerb_e + SIDEWALK, xmax)):  # corners: close the sidewalks' ends
+        for cy0, cy1 in ((ymin, kerb_s), (kerb_n, ymax)):
+            b.rect(cx0, cx1, cy0, cy1, 0.0, rng.uniform(8.0, 20.0), rng.uniform(0.3, 0.8))
     _buildings(b, rng, _Edge(np.array([xmin, kerb_s]), np.array([1.0, 0.0]), np.array([0.0, -1.0])),
                0.0, xmax - xmin, gapless=True, back=kerb_s - ymin)
     _terrace(b, _Edge(np.array([xmin, kerb_n]), np.array([1.0, 0.0]), np.array([0.0, 1.0])), 0.0, xmax - xmin,
