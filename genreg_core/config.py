@@ -366,6 +366,8 @@ class LocalizationConfig:
     index_band: float = setting(2.0, "The place index's descriptors see structure up to this height, m, above "
                                 "the local ground (ceilings and canopies above it are left out).",
                                 low=0.1, high=100.0)
+    screen_voxels: float = setting(5.0, "Retrieved places are aligned coarsely (VGICP) on voxels this many map "
+                                   "voxels wide.", low=1.0, high=1000.0)
     rival_distance: float = setting(4.0, "Two map poses whose positions differ by more than this many map voxels "
                                     "(or turned by more than PDSAC's mode separation) are distinct: the less "
                                     "probable bounds the other's confidence (a slide along a road or a "

@@ -74,8 +74,8 @@ from genreg_core.geometry import apply_transform
 from genreg_core.place_index import IndexGeometry, PlaceIndex, hit_pose
 from genreg_core.prepare import check_transform, robust_extent, validate_cloud
 from genreg_core.preprocess import voxel_downsample
-from genreg_core.refine import gicp_target
-from genreg_core.registration import Registrar, distinct_poses
+from genreg_core.refine import VoxelTarget, gicp_target
+from genreg_core.registration import COARSE_ITERATIONS, Registrar, distinct_poses
 from genreg_core.result import (
     TRACKING_CALIBRATION,
     Aligned,
@@ -211,6 +211,7 @@ class MapLocalizer:
         self.threads = config.threads or int(os.environ.get("OMP_NUM_THREADS") or 1)
         self._local: LocalMap | None = None
         self._whole: LocalMap | None = None  # the whole map prepared for GICP (retrieved places' alignment)
+        self._voxels: VoxelTarget | None = None  # ... and for VGICP (their coarse alignment)
         self._index: PlaceIndex | None = None
         rng = np.random.default_rng(0)
         sample = self.map if len(self.map) <= EXTENT_SAMPLES else self.map[rng.choice(len(self.map), EXTENT_SAMPLES)]
@@ -384,26 +385,42 @@ class MapLocalizer:
         return self._index
 
     def whole_map(self) -> LocalMap:
-        """The whole map indexed and prepared for GICP, once: what retrieved places are aligned against."""
+        """The whole map indexed and prepared for GICP and VGICP (voxels of `screen_voxels` map voxels), once:
+        what retrieved places are aligned against."""
         if self._whole is None:
             index = TargetIndex(self.map, self.threads, spacing=self.voxel_size)
-            gicp_target(index)
+            self._voxels = VoxelTarget(gicp_target(index), self.config.screen_voxels * self.voxel_size)
             self._whole = LocalMap(self.map.mean(axis=0), float("inf"), True, index)
         return self._whole
 
     def retrieved(self, scan: np.ndarray, geometry: tuple[np.ndarray, float]) -> RegistrationResult:
         """A scan without a guess placed by the place index: each of the `retrieve` places and headings it
-        retrieves is aligned by GICP against the whole map and verified as tracking is (`track`); the most
-        confident wins, bounded by its distinct rivals (`chosen`)."""
+        retrieves is aligned coarsely by VGICP against the whole map (`screen_points` of the scan's points,
+        `COARSE_ITERATIONS` iterations, voxels of `screen_voxels`) and scored by its fitness; the `candidates` best distinct poses are
+        aligned and verified as tracked scans are (`track`, from the coarse pose), and the most confident
+        wins, bounded by its distinct rivals (`chosen`)."""
         t0 = time.perf_counter()
-        hits = self.place_index().retrieve(scan, self.config.retrieve)
+        c, voxel = self.config, self.voxel_size
+        hits = self.place_index().retrieve(scan, c.retrieve)
         t1 = time.perf_counter()
         whole = self.whole_map()
-        results = [r for h in hits if (r := self.track(scan, hit_pose(h), geometry, whole)) is not None]
+        assert self._voxels is not None
+        rows = np.random.default_rng(self.registrar.config.seed).permutation(len(scan))[:c.screen_points]
+        sample = scan[np.sort(rows)]
+        coarse = [self._voxels.align(sample, hit_pose(h), max_iterations=COARSE_ITERATIONS) for h in hits]
+        fitness = [float(overlap_shares(sample, whole.index, T, np.array([FITNESS_SPACINGS * voxel]))[0])
+                   for T in coarse]
+        separation, kept = np.radians(self.registrar.config.pdsac.mode_separation), []
+        for k in np.argsort(fitness, kind="stable")[::-1]:  # the fittest distinct poses
+            if len(kept) < c.candidates and all(distinct_poses(coarse[k], coarse[j], separation,
+                                                               c.rival_distance * voxel) for j in kept):
+                kept.append(int(k))
+        t2 = time.perf_counter()
+        results = [r for k in kept if (r := self.track(scan, coarse[k], geometry, whole)) is not None]
         if not results:  # nothing retrieved near enough to the map to align: the whole map from the identity
             results = [self.track(scan, np.eye(4), geometry, whole) or self.registrar.register(scan, self.map)]
         best = self.chosen(results)
-        best.timings = {"retrieve": t1 - t0, "refine": time.perf_counter() - t1,
+        best.timings = {"retrieve": t1 - t0, "screen": t2 - t1, "refine": time.perf_counter() - t2,
                         "total": time.perf_counter() - t0}
         return best
 

@@ -84,6 +84,27 @@ def icp(
     return np.asarray(T).copy()
 
 
+class VoxelTarget:
+    """A target cloud prepared once for small_gicp's VGICP: its points' Gaussians (mean, covariance) merged
+    per voxel of `resolution`. Correspondences are voxel lookups, not k-d tree searches, so a source aligns
+    against a map of millions of points in milliseconds (coarser than GICP: one Gaussian per voxel)."""
+
+    def __init__(self, target: GICPTarget, resolution: float) -> None:
+        """`target`: the points with their covariances (`gicp_target`)."""
+        self.voxels = small_gicp.GaussianVoxelMap(resolution)
+        self.voxels.insert(target.cloud)
+        self.neighbours = target.neighbours
+
+    def align(self, source: np.ndarray, init: np.ndarray, *, max_iterations: int, threads: int = 1) -> np.ndarray:
+        """VGICP of `source` (its covariances from the target's neighbour count) from `init`: the 4x4
+        target_from_source."""
+        cloud = small_gicp.PointCloud(np.ascontiguousarray(source, dtype=np.float64))
+        tree = small_gicp.KdTree(cloud, num_threads=1)
+        small_gicp.estimate_covariances(cloud, tree, num_neighbors=self.neighbours, num_threads=1)
+        return np.asarray(small_gicp.align(self.voxels, cloud, np.asarray(init, float), max_iterations=max_iterations,
+                                           num_threads=threads).T_target_source).copy()
+
+
 class GICPTarget:
     """A target cloud prepared once for small_gicp's GICP (its k-d tree and point covariances), to align
     many sources against (a map). Each source is prepared the same way on the same `threads` (per point:
