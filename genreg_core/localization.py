@@ -32,7 +32,8 @@ results are verified for one scan, a distinct pose among them is the chosen one'
 distinct poses cannot both be right, so the confidence is at most 1 - the rival's; the rival is named
 among the result's `unconstrained` motions ("translation along (x, y, z) to a rival pose d m away": a
 slide along a road or a corridor whose structure repeats) and widens the covariance. The map may be
-voxelised on load (`map_voxel`).
+voxelised on load (`map_voxel`). With the index, tracking aligns against the whole map too (no local maps
+to rebuild as the robot moves), and an unsure track is checked by the index's search rather than GenReg.
 
 With a guess (tracking), the scan is aligned by GICP from the guess against the map around the guessed
 scan position (`local_radius` scan radii; the whole map when it fits), prepared once per region
@@ -289,13 +290,17 @@ class MapLocalizer:
             raise TooFewPointsError(f"source has {len(scan)} points after voxelising to the map's "
                                     f"{self.voxel_size:.3g}; registration needs at least {reg.config.min_points}")
         centroid, radius, extent = self.scan_geometry(scan)
+        indexed = self.config.retrieve > 0
         if guess is not None:  # tracking runs with the calibration's tracking model only
-            tracked = self.track(scan, guess, (centroid, radius)) if self.tracking_calibrated else None
+            tracked = self.track(scan, guess, (centroid, radius), self.whole_map() if indexed else None) \
+                if self.tracking_calibrated else None
             if tracked is not None and tracked.confidence >= self.config.track_below:
                 return tracked
+            if indexed:  # an unsure track: the place index's answer, bounded by the track's if they differ
+                return self.chosen([self.retrieved(scan, (centroid, radius)), *([tracked] if tracked else [])])
             searched = self.refined(scan, guess, apply_transform(guess, centroid[None])[0], radius)
             return searched if tracked is None else max(tracked, searched, key=lambda r: r.confidence)
-        if self.config.retrieve:
+        if indexed:
             return self.retrieved(scan, (centroid, radius))
         whole = reg.register(scan, self.map)
         places = self.places(radius)
