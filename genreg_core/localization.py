@@ -21,7 +21,7 @@ radius, kept in memory and, with `cache_dir`, on disk by the map's content hash)
 against every place in batched `Registrar.register_many` calls at `screen_model_points` points (the same
 weights), unrefined (GenReg is rotation invariant: no orientation is searched); the best `candidates` by confidence are verified against a crop
 of the whole map around each (registration from the candidate's pose as the initial guess), and the most
-confident pose, the whole map's included, wins.
+confident pose, the whole map's included, wins, bounded by its distinct rivals (below).
 
 A gravity-aligned map (z up, as LiDAR maps are) can instead be searched through its place index
 (`retrieve` > 0; `genreg_core.place_index`, built once per map and cached with it): the scan's polar height
@@ -311,7 +311,7 @@ class MapLocalizer:
         best = sorted(range(len(screened)), key=lambda k: -screened[k].confidence)[: c.candidates]
         verified = [self.refined(scan, screened[k].transformation,
                                  apply_transform(screened[k].transformation, centroid[None])[0], radius) for k in best]
-        return max([whole, *verified], key=lambda r: r.confidence)
+        return self.chosen([whole, *verified])
 
     @property
     def tracking_confidence(self) -> Confidence:
