@@ -72,6 +72,7 @@ from genreg_core.confidence import SPACINGS
 from genreg_core.config import SCENE_MODEL, SCENE_REGISTRATION, LocalizationConfig
 from genreg_core.errors import ConfigError, TooFewPointsError
 from genreg_core.geometry import apply_transform
+from genreg_core.place_index import VERSION as INDEX_VERSION
 from genreg_core.place_index import IndexGeometry, PlaceIndex, hit_pose
 from genreg_core.prepare import check_transform, robust_extent, validate_cloud
 from genreg_core.preprocess import voxel_downsample
@@ -381,7 +382,8 @@ class MapLocalizer:
             c = self.config
             geometry = IndexGeometry(spacing=c.index_spacing, radius=c.index_radius, band=c.index_band)
             path = None if self.cache_dir is None else self.cache_dir / (
-                f"index-{self._key}-s{c.index_spacing:.6g}-r{c.index_radius:.6g}-b{c.index_band:.6g}.npz")
+                f"index-v{INDEX_VERSION}-{self._key}-s{c.index_spacing:.6g}-r{c.index_radius:.6g}-b{c.index_band:.6g}"
+                f"-m{c.map_voxel:.6g}.npz")
             self._index = read_index(path, geometry) if path is not None and path.is_file() else None
             if self._index is None:
                 self._index = PlaceIndex.build(self.map, geometry)

@@ -8,7 +8,8 @@ A place is a point where a sensor could stand: the centre of a cell of a horizon
 that holds ground and no obstacle. Its descriptor is a polar height image of the map around it (Scan
 Context, Kim and Kim 2018): `rings` x `sectors` bins out to `radius` m, each the highest point in the
 bin between the ground and `band` m above it (taller structure - ceilings, canopies - is left out, so a
-facade, a wall and a parked car read the same from any height of sensor). Heights are above the local
+facade, a wall and a parked car read the same from any height of sensor), and nothing behind a wall
+(what a sensor at the place would not see: the next corridor, the street behind a facade). Heights are above the local
 ground: the lowest point within a cell's neighbourhood (`ground_cells`). A scan's descriptor is the same
 image around its origin, the sensor, in its own frame, whose z axis must point up (REP-103: a LiDAR on a
 robot base; within about 10 deg). Both are computed by one function (`height_image`, `describe`) on a
@@ -36,6 +37,8 @@ from genreg_core.errors import TooFewPointsError
 EMPTY = np.float32(np.inf)  # a raster cell without points
 GROUND_REACH = 15.0  # a scan's ground under its sensor is estimated from the cells within this many metres
 GROUND_QUANTILE = 0.2  # ... as this quantile of their local ground
+VERSION = 2  # of the descriptors: part of a cached index's name (a change makes caches stale)
+BLOCKING = 0.95  # a descriptor bin this high (a share of the band) is a wall: the bins behind it are hidden
 
 
 @dataclass(frozen=True)
@@ -114,16 +117,22 @@ class Stencil:
         self.reach = reach
 
 
-def describe(raster: Raster, cells: np.ndarray, stencil: Stencil, chunk: int = 256) -> np.ndarray:
+def describe(raster: Raster, cells: np.ndarray, stencil: Stencil, band: float, chunk: int = 256) -> np.ndarray:
     """(K, rings, sectors) float32 descriptors of places at raster `cells` (K, 2): per polar bin the highest
-    point above the ground (0 where the bin holds no structure or nothing was seen)."""
+    point above the ground (0 where the bin holds no structure or nothing was seen), and 0 behind a wall: a
+    bin whose structure reaches the band's top (`BLOCKING` x `band`: a wall or a facade, not a parked car)
+    hides the farther bins of its sector, as it hides them from a sensor there (the map holds what the
+    sensor cannot see from the place: other corridors, the next street)."""
     padded = np.pad(np.maximum(raster.height, 0.0), stencil.reach)
     out = np.zeros((len(cells), stencil.shape[0] * stencil.shape[1]), np.float32)
     for start in range(0, len(cells), chunk):
         c = cells[start: start + chunk] + stencil.reach
         values = padded[c[:, :1] + stencil.di[None], c[:, 1:] + stencil.dj[None]]
         out[start: start + chunk, stencil.present] = np.maximum.reduceat(values, stencil.starts, axis=1)
-    return out.reshape(len(cells), *stencil.shape)
+    out = out.reshape(len(cells), *stencil.shape)
+    wall = out >= BLOCKING * band
+    out[np.cumsum(wall, axis=1) - wall > 0] = 0.0  # a wall nearer in the same sector
+    return out
 
 
 def spectra(descriptors: np.ndarray) -> np.ndarray:
@@ -182,7 +191,7 @@ class PlaceIndex:
         ok = np.isfinite(ground)
         cells, ground = cells[ok], ground[ok]
         xy = raster.origin + (cells + 0.5) * g.cell
-        return cls(g, np.column_stack([xy, ground]), describe(raster, cells, Stencil(g)))
+        return cls(g, np.column_stack([xy, ground]), describe(raster, cells, Stencil(g), g.band))
 
     def describe_scan(self, scan_xyz: np.ndarray) -> tuple[np.ndarray, float]:
         """The scan's descriptor around its origin (the sensor) and the ground's z under it, scan frame."""
@@ -200,7 +209,7 @@ class PlaceIndex:
                                max(at[0, 1] - reach, 0): at[0, 1] + reach + 1]
         seen = window[np.isfinite(window)]
         ground = float(np.quantile(seen, GROUND_QUANTILE)) if len(seen) else float(near[:, 2].min())
-        return describe(raster, at, Stencil(g))[0], float(ground)
+        return describe(raster, at, Stencil(g), g.band)[0], float(ground)
 
     def retrieve(self, scan_xyz: np.ndarray, count: int, chunk: int = 4096) -> list[Hit]:
         """The `count` most similar (place, heading) pairs for a scan (sensor frame, z up): every place

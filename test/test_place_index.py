@@ -75,23 +75,25 @@ def test_fft_shift_distances_equal_the_brute_force_scan_context_distance() -> No
             assert got[k, s] == pytest.approx(expected, abs=1e-5)
 
 
-def test_descriptor_bins_hold_the_highest_point_of_each_polar_bin_by_brute_force() -> None:
+def test_descriptor_bins_hold_the_highest_point_of_each_polar_bin_and_nothing_behind_a_wall() -> None:
     g = IndexGeometry(radius=10.0, rings=5, sectors=8, band=2.0, cell=0.25, ground_cells=3)
     rng = np.random.default_rng(2)
     ground = np.column_stack([rng.uniform(-12, 12, (40_000, 2)), np.zeros(40_000)])  # flat ground at z = 0
     # one post of known height in each of a few bins, well inside them (away from bin edges)
     posts = []
-    for ring, sector, height in [(1, 0, 0.7), (3, 2, 1.5), (4, 5, 1.9), (2, 7, 2.6)]:  # 2.6: above the band
+    # 2.6 and 2.5: above the band (walls); the 1.0 post stands behind the 2.5 one in its sector
+    for ring, sector, height in [(1, 0, 0.7), (3, 2, 1.5), (4, 5, 1.9), (2, 7, 2.6), (1, 3, 2.5), (3, 3, 1.0)]:
         r = (ring + 0.5) * g.radius / g.rings
         a = -np.pi + (sector + 0.5) * 2 * np.pi / g.sectors
         z = np.linspace(0.0, height, 30)
         posts.append(np.column_stack([np.full(30, r * np.cos(a)), np.full(30, r * np.sin(a)), z]))
     cloud = np.vstack([ground, *posts])
     raster = height_image(cloud, g, margin=g.radius)
-    got = describe(raster, raster.cells(np.zeros((1, 2))), Stencil(g))[0]
+    got = describe(raster, raster.cells(np.zeros((1, 2))), Stencil(g), g.band)[0]
     expected = np.zeros((g.rings, g.sectors))
     expected[1, 0], expected[3, 2], expected[4, 5] = 0.7, 1.5, 1.9
     expected[2, 7] = max(z for z in np.linspace(0.0, 2.6, 30) if z <= 2.0)  # its highest point within the band
+    expected[1, 3] = max(z for z in np.linspace(0.0, 2.5, 30) if z <= 2.0)  # a wall: (3, 3) behind it stays 0
     np.testing.assert_allclose(got, expected, atol=1e-5)
 
 
