@@ -316,12 +316,9 @@ SCENE_OVERRIDES: dict[str, Any] = {"model.checkpoint": SCENE_MODEL, **registrati
 # latched (reliable, transient_local), the camera best effort (SensorDataQoS)
 MAP_OVERRIDES: dict[str, Any] = {**SCENE_OVERRIDES, "workers": 1, "map.enabled": True, "budget.latency": 0.0,
                                  "qos.target_reliability": "reliable", "qos.target_durability": "transient_local"}
-# LiDAR maps: map mode with the place index (gravity-aligned maps, z up), the map voxelised to 0.2 m on load;
-# a tracked pose stands on tracking's own confidence (track_below 0): GenReg's check from the guess scores a
-# scan placed metres along a street from where it was taken (a stale guess, a kidnap) as right, since the
-# ground and the facades still overlap; a miss instead leads to a search without a guess (the place index)
+# LiDAR maps: map mode with the place index (gravity-aligned maps, z up), the map voxelised to 0.2 m on load
 LIDAR_MAP_OVERRIDES: dict[str, Any] = {**MAP_OVERRIDES, "map.localization.retrieve": 8,
-                                       "map.localization.map_voxel": 0.2, "map.localization.track_below": 0.0}
+                                       "map.localization.map_voxel": 0.2}
 PROFILES: dict[str, tuple[str, dict[str, Any]]] = {
     "genreg.yaml": (f"depth-camera and indoor scenes (the scene model {SCENE_MODEL})", SCENE_OVERRIDES),
     "genreg_map.yaml": (f"map mode: depth-camera scans localised in a prior map (the scene model {SCENE_MODEL})",
