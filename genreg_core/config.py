@@ -342,7 +342,8 @@ class LocalizationConfig:
     crop_radius: float = setting(1.5, "A verification, or GenReg from a guess, registers against the map within "
                                  "this many scan radii of the scan's predicted centre.", low=0.1, high=100.0)
     track_below: float = setting(0.5, "With a guess, a tracked pose (GICP) less confident than this is checked "
-                                 "by GenReg from the guess on a crop; the more confident pose wins (1: always).",
+                                 "by GenReg from the guess on a crop (with the place index: by its search); "
+                                 "the more confident pose wins (1: always).",
                                  low=0.0, high=1.0)
     track_points: int = setting(1500, "Tracking aligns and verifies at most this many of the voxelised scan's "
                                 "points.", low=16, high=10_000_000)

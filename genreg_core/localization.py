@@ -33,7 +33,8 @@ distinct poses cannot both be right, so the confidence is at most 1 - the rival'
 among the result's `unconstrained` motions ("translation along (x, y, z) to a rival pose d m away": a
 slide along a road or a corridor whose structure repeats) and widens the covariance. The map may be
 voxelised on load (`map_voxel`). With the index, tracking aligns against the whole map too (no local maps
-to rebuild as the robot moves), and an unsure track is checked by the index's search rather than GenReg.
+to rebuild as the robot moves), and an unsure track, or one that moved beyond GICP's reach from its guess
+(`track_distance`: the guess was stale), is checked by the index's search rather than GenReg.
 
 With a guess (tracking), the scan is aligned by GICP from the guess against the map around the guessed
 scan position (`local_radius` scan radii; the whole map when it fits), prepared once per region
@@ -291,11 +292,16 @@ class MapLocalizer:
             raise TooFewPointsError(f"source has {len(scan)} points after voxelising to the map's "
                                     f"{self.voxel_size:.3g}; registration needs at least {reg.config.min_points}")
         centroid, radius, extent = self.scan_geometry(scan)
-        indexed = self.config.retrieve > 0
+        indexed, c = self.config.retrieve > 0, self.config
         if guess is not None:  # tracking runs with the calibration's tracking model only
             tracked = self.track(scan, guess, (centroid, radius), self.whole_map() if indexed else None) \
                 if self.tracking_calibrated else None
-            if tracked is not None and tracked.confidence >= self.config.track_below:
+            # with the index, a track that moved beyond GICP's reach from its guess (a stale guess, which may
+            # have slid onto a look-alike place along a repeating street) is checked like an unsure one
+            far = indexed and tracked is not None and distinct_poses(
+                tracked.transformation, guess, np.radians(self.registrar.config.pdsac.mode_separation),
+                c.track_distance * self.voxel_size)
+            if tracked is not None and tracked.confidence >= c.track_below and not far:
                 return tracked
             if indexed:  # an unsure track: the place index's answer, bounded by the track's if they differ
                 return self.chosen([self.retrieved(scan, (centroid, radius)), *([tracked] if tracked else [])])
@@ -305,7 +311,6 @@ class MapLocalizer:
             return self.retrieved(scan, (centroid, radius))
         whole = reg.register(scan, self.map)
         places = self.places(radius)
-        c = self.config
         if self.extent < c.whole_map_ratio * extent or whole.confidence >= c.accept_whole or not places:
             return whole
         screened = self.screen(scan, [self.map[rows] for rows in places])
@@ -374,6 +379,13 @@ class MapLocalizer:
         t2 = time.perf_counter()
         result.timings = {"refine": t1 - t0, "result": t2 - t1, "total": t2 - t0}
         return result
+
+    def prepare(self) -> None:
+        """Build now what localisation would build on first use: with the place index, the index and the
+        whole map prepared for GICP (seconds on a map of millions of points)."""
+        if self.config.retrieve:
+            self.place_index()
+            self.whole_map()
 
     def place_index(self) -> PlaceIndex:
         """The map's place index (`genreg_core.place_index`; the index settings), built on first use and kept

@@ -300,6 +300,11 @@ class MapPipeline(Pipeline):
         self._cache_dir = cache_dir
         self._state = Localization(context.config().map.lost_after)
         self._localizer: tuple[np.ndarray, MapLocalizer, str] | None = None  # (map points, localizer, frame)
+        if fixed is not None:  # a map file is prepared before the node is ready, not on the first scan
+            try:
+                self._map_localizer(registrar, context.config(), fixed.xyz, fixed.frame).prepare()
+            except NotRegistered:
+                pass  # the first scan meets the same error and counts it
 
     def pairing(self, c: NodeConfig) -> PairSync:
         """Every scan paired with the newest map (or the file's)."""

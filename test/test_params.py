@@ -229,7 +229,7 @@ def test_node_name_from_arguments():
 def test_every_map_localisation_setting_is_a_start_up_parameter_with_the_cores_default_range_and_help(tmp_path):
     core = {s.name: s for s in settings(LocalizationConfig)}
     mine = {s.name.removeprefix("map.localization."): s for s in SETTINGS if s.name.startswith("map.localization.")}
-    assert mine.keys() == core.keys() and len(core) == 19
+    assert mine.keys() == core.keys() and len(core) == len(dataclasses.fields(LocalizationConfig))
     for name, s in mine.items():
         c = core[name]
         assert (s.default, s.type, s.help, s.low, s.high) == (c.default, c.type, c.help, c.low, c.high), name
