@@ -43,8 +43,10 @@ Sections (--sections, comma separated):
   beyond     the map of the survey poses west of the world's middle (x < 0); scans 2-30 m east of it
   picture    docs/lidar_map_errors.png: the map from above, the global section's scans coloured by TE
 
-Tables (markdown) go to stdout and runs/bench_lidar_map/<timestamp>/report.md, per-scan records to
-results.json beside it; --quick writes its figures there too (not into docs/).
+Threads: --threads for torch, OpenMP (OMP_NUM_THREADS) and small_gicp; OMP_WAIT_POLICY=PASSIVE unless set
+(idle OpenMP workers that spin slow GICP several-fold when other processes share the cores). Tables
+(markdown) go to stdout and runs/bench_lidar_map/<timestamp>/report.md, per-scan records to results.json
+beside it; --quick writes its figures there too (not into docs/).
 """
 
 from __future__ import annotations
@@ -125,6 +127,7 @@ def parse(argv: list[str] | None = None) -> argparse.Namespace:
 
 ARGS = parse()
 os.environ["OMP_NUM_THREADS"] = str(ARGS.threads)  # before Open3D and torch load
+os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")  # spinning OpenMP workers starve on a shared 2-core machine
 
 import numpy as np
 import torch
@@ -820,7 +823,8 @@ def main() -> int:
     report = Report(out, meta)
     report.add(f"# GenReg LiDAR map localisation ({'training' if a.train else 'held-out'} worlds: seed {a.seed}, "
                f"off-map seed {a.offmap_seed}; blocks {a.blocks[0]}x{a.blocks[1]})", "",
-               f"Threads {a.threads} (torch {torch.get_num_threads()}, OMP_NUM_THREADS {os.environ['OMP_NUM_THREADS']}), "
+               f"Threads {a.threads} (torch {torch.get_num_threads()}, OMP_NUM_THREADS {os.environ['OMP_NUM_THREADS']}, "
+               f"OMP_WAIT_POLICY {os.environ['OMP_WAIT_POLICY']}), "
                f"{os.cpu_count()} cores, load average at start {load_text()}; profile: "
                f"retrieve {lidar_config().retrieve}, map_voxel {lidar_config().map_voxel:g} m; sections "
                f"{','.join(a.sections)}; code: {code_state()}.", "")
