@@ -369,6 +369,9 @@ class LocalizationConfig:
                                 low=0.1, high=100.0)
     screen_voxels: float = setting(5.0, "Retrieved places are aligned coarsely (VGICP) on voxels this many map "
                                    "voxels wide.", low=1.0, high=1000.0)
+    slide_reach: float = setting(14.0, "The fittest retrieved pose is also tried slid along the scan's main axis "
+                                 "(a road, a corridor) by every two VGICP voxels up to this distance, m, both "
+                                 "ways: a look-alike pose found there is its rival (0: off).", low=0.0, high=1000.0)
     rival_distance: float = setting(4.0, "Two map poses whose positions differ by more than this many map voxels "
                                     "(or turned by more than PDSAC's mode separation) are distinct: the less "
                                     "probable bounds the other's confidence (a slide along a road or a "

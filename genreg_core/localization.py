@@ -415,7 +415,10 @@ class MapLocalizer:
     def retrieved(self, scan: np.ndarray, geometry: tuple[np.ndarray, float]) -> RegistrationResult:
         """A scan without a guess placed by the place index: each of the `retrieve` places and headings it
         retrieves is aligned coarsely by VGICP against the whole map (`screen_points` of the scan's points,
-        `COARSE_ITERATIONS` iterations, voxels of `screen_voxels`) and scored by its fitness; the `candidates` best distinct poses are
+        `COARSE_ITERATIONS` iterations, voxels of `screen_voxels`) and scored by the share of the points it
+        seats in the voxels, and so is the
+        fittest of them slid along the scan's main axis (`slides`: look-alike places along a road or a
+        corridor); the `candidates` best distinct poses are
         aligned and verified as tracked scans are (`track`, from the coarse pose), and the most confident
         wins, bounded by its distinct rivals (`chosen`)."""
         t0 = time.perf_counter()
@@ -426,9 +429,12 @@ class MapLocalizer:
         assert self._voxels is not None
         rows = np.random.default_rng(self.registrar.config.seed).permutation(len(scan))[:c.screen_points]
         sample = scan[np.sort(rows)]
-        coarse = [self._voxels.align(sample, hit_pose(h), max_iterations=COARSE_ITERATIONS) for h in hits]
-        fitness = [float(overlap_shares(sample, whole.index, T, np.array([FITNESS_SPACINGS * voxel]))[0])
-                   for T in coarse]
+        aligned = [self._voxels.align(sample, hit_pose(h), max_iterations=COARSE_ITERATIONS) for h in hits]
+        if aligned and c.slide_reach > 0:  # the fittest pose slid along the scan's main axis: a look-alike rival?
+            fittest = max(aligned, key=lambda a: a[1])[0]
+            aligned += [self._voxels.align(sample, T, max_iterations=COARSE_ITERATIONS)
+                        for T in self.slides(sample, fittest)]
+        coarse, fitness = [T for T, _ in aligned], [share for _, share in aligned]
         separation, kept = np.radians(self.registrar.config.pdsac.mode_separation), []
         for k in np.argsort(fitness, kind="stable")[::-1]:  # the fittest distinct poses
             if len(kept) < c.candidates and all(distinct_poses(coarse[k], coarse[j], separation,
@@ -442,6 +448,22 @@ class MapLocalizer:
         best.timings = {"retrieve": t1 - t0, "screen": t2 - t1, "refine": time.perf_counter() - t2,
                         "total": time.perf_counter() - t0}
         return best
+
+    def slides(self, sample: np.ndarray, T: np.ndarray) -> list[np.ndarray]:
+        """T moved along the scan's main horizontal axis (the principal axis of its points' xy: a road's or
+        a corridor's direction), both ways, by every multiple of two VGICP voxels (`screen_voxels`) up to
+        `slide_reach` m: where a repeating street or corridor would put a look-alike pose."""
+        xy = sample[:, :2] - sample[:, :2].mean(axis=0)
+        axis = np.linalg.eigh(xy.T @ xy)[1][:, -1]
+        direction = T[:3, :3] @ np.array([axis[0], axis[1], 0.0])
+        step = 2.0 * self.config.screen_voxels * self.voxel_size
+        shifts = np.arange(step, self.config.slide_reach + 1e-9, step)
+        moved = []
+        for d in (*shifts, *-shifts):
+            S = T.copy()
+            S[:3, 3] += d * direction
+            moved.append(S)
+        return moved
 
     def chosen(self, results: Sequence[RegistrationResult]) -> RegistrationResult:
         """The most confident of several results for one scan, its confidence bounded by the most confident

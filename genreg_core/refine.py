@@ -95,14 +95,16 @@ class VoxelTarget:
         self.voxels.insert(target.cloud)
         self.neighbours = target.neighbours
 
-    def align(self, source: np.ndarray, init: np.ndarray, *, max_iterations: int, threads: int = 1) -> np.ndarray:
+    def align(self, source: np.ndarray, init: np.ndarray, *, max_iterations: int, threads: int = 1
+              ) -> tuple[np.ndarray, float]:
         """VGICP of `source` (its covariances from the target's neighbour count) from `init`: the 4x4
-        target_from_source."""
+        target_from_source, and the share of the source's points that met a voxel's Gaussian under it."""
         cloud = small_gicp.PointCloud(np.ascontiguousarray(source, dtype=np.float64))
         tree = small_gicp.KdTree(cloud, num_threads=1)
         small_gicp.estimate_covariances(cloud, tree, num_neighbors=self.neighbours, num_threads=1)
-        return np.asarray(small_gicp.align(self.voxels, cloud, np.asarray(init, float), max_iterations=max_iterations,
-                                           num_threads=threads).T_target_source).copy()
+        result = small_gicp.align(self.voxels, cloud, np.asarray(init, float), max_iterations=max_iterations,
+                                  num_threads=threads)
+        return np.asarray(result.T_target_source).copy(), result.num_inliers / max(len(source), 1)
 
 
 class GICPTarget:
