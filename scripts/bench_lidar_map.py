@@ -41,7 +41,8 @@ Sections (--sections, comma separated):
              without a guess, each next one from the previous result's pose; lost: a scan not placed
   offmap     scans of another world (seed + 1) localised in the map: accepted count, time
   beyond     the map of the survey poses west of the world's middle (x < 0); scans 2-30 m east of it
-  picture    docs/lidar_map_errors.png: the map from above, the global section's scans coloured by TE
+  picture    docs/lidar_map_errors.png: the map from above (world x, y), the global section's scans coloured
+             by TE
 
 Threads: --threads for torch, OpenMP (OMP_NUM_THREADS) and small_gicp; OMP_WAIT_POLICY=PASSIVE unless set
 (idle OpenMP workers that spin slow GICP several-fold when other processes share the cores). Tables
@@ -586,18 +587,11 @@ class Bench:
         del s
 
     def run_picture(self) -> None:
-        from genreg_bench.map_suite import plot_map
-
         if not self.global_recs:
             self.report.add("(picture: needs the global section)", "")
             return
         s = self.main
-        recs = self.global_recs
-        path = plot_map(self.figures / "lidar_map_errors.png",
-                        f"{s.world.key}: {sum(r['kind'] == 'roads' for r in recs)} road and "
-                        f"{sum(r['kind'] == 'indoor' for r in recs)} indoor scans",
-                        s.map_xyz, np.array([np.asarray(r["truth"])[:3, 3] for r in recs]),
-                        np.array([r["te_m"] for r in recs]), np.array([r["placed"] for r in recs], dtype=bool))
+        path = plot_errors(self.figures / "lidar_map_errors.png", s.world, s.map_xyz, self.global_recs)
         self.report.add(f"Figure: {path} (colour: TE in cm, capped at 10; red crosses: not placed).", "")
 
 
@@ -701,6 +695,47 @@ def plot_curve(path: Path, points: list[dict[str, Any]], seed: int) -> Path:
     fig.tight_layout()
     path.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(path, dpi=100)
+    plt.close(fig)
+    return path
+
+
+def plot_errors(path: Path, world: lw.World, map_xyz: np.ndarray, recs: list[dict[str, Any]]) -> Path:
+    """The map from above in world x, y (at most `FIGURE_POINTS` of its points, grey) with the scans' true
+    positions coloured by TE in cm (capped at 10, as `genreg_bench.map_suite.plot_map`), those not placed as red
+    crosses, the terraced street and the corridors drawn."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    from mpl_toolkits.axes_grid1 import make_axes_locatable
+
+    from genreg_bench.map_suite import FIGURE_POINTS
+
+    pts = map_xyz[np.random.default_rng(0).permutation(len(map_xyz))[:FIGURE_POINTS]]
+    where = np.array([np.asarray(r["truth"])[:2, 3] for r in recs]).reshape(-1, 2)
+    te = np.array([r["te_m"] for r in recs])
+    ok = np.array([r["placed"] for r in recs], dtype=bool)
+    indoor = np.array([r["kind"] == "indoor" for r in recs], dtype=bool)
+    fig, ax = plt.subplots(figsize=(9, 7))
+    ax.scatter(pts[:, 0], pts[:, 1], s=0.3, c="0.65", linewidths=0, rasterized=True)
+    if world.terrace is not None:
+        ax.plot(*np.asarray(world.terrace).T, "-", color="C1", lw=6, alpha=0.35,
+                label=f"terraced street (repeats every {world.terrace_period:g} m)")
+    for k, line in enumerate(world.indoor):
+        ax.plot(*np.asarray(line).T, "-", color="C0", lw=4, alpha=0.35, label="corridors" if k == 0 else None)
+    dots = ax.scatter(where[ok, 0], where[ok, 1], c=np.minimum(100 * te[ok], 10.0), cmap="viridis", vmin=0.0,
+                      vmax=10.0, s=40, edgecolors="k", linewidths=0.5, label="placed")
+    ax.scatter(where[~ok, 0], where[~ok, 1], c="red", marker="x", s=60, linewidths=2, label="not placed")
+    cax = make_axes_locatable(ax).append_axes("right", size="3%", pad=0.1)
+    fig.colorbar(dots, cax=cax, label="GenReg translation error (cm, capped at 10)")
+    ax.set(aspect="equal", xlabel="x (m)", ylabel="y (m)",
+           title=f"{world.key}: placed {int(ok[~indoor].sum())}/{int((~indoor).sum())} road and "
+                 f"{int(ok[indoor].sum())}/{int(indoor.sum())} indoor scans (RE < {MAX_RE_DEG:g} deg, "
+                 f"TE < {MAX_TE_M:g} m)")
+    ax.legend(loc="upper center", bbox_to_anchor=(0.5, -0.08), ncol=4, fontsize=8)
+    fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=100, bbox_inches="tight")
     plt.close(fig)
     return path
 
