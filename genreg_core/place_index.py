@@ -168,6 +168,7 @@ class PlaceIndex:
         self.centres = np.asarray(centres, dtype=np.float64)  # (K, 3): x, y, ground z
         self.descriptors = np.asarray(descriptors, dtype=np.float32)
         self.spectra = spectra(self.descriptors)
+        self.stencil = Stencil(geometry)  # a scan's descriptor reuses it (built once, not per scan)
 
     def __len__(self) -> int:
         return len(self.centres)
@@ -209,7 +210,7 @@ class PlaceIndex:
                                max(at[0, 1] - reach, 0): at[0, 1] + reach + 1]
         seen = window[np.isfinite(window)]
         ground = float(np.quantile(seen, GROUND_QUANTILE)) if len(seen) else float(near[:, 2].min())
-        return describe(raster, at, Stencil(g), g.band)[0], float(ground)
+        return describe(raster, at, self.stencil, g.band)[0], float(ground)
 
     def retrieve(self, scan_xyz: np.ndarray, count: int, chunk: int = 4096) -> list[Hit]:
         """The `count` most similar (place, heading) pairs for a scan (sensor frame, z up): every place
