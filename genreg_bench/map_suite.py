@@ -3,7 +3,8 @@ registration, on held-out scans.
 
 Maps are fused from held-out frames (each frame's points moved by its ground-truth pose into the world
 frame, concatenated, voxelised: `RGBDSequence.fused`; metres): redkitchen validation frames 800-990 every 10th, each SUN3D fragment
-every 5th frame and, with --combined-map, the redkitchen and SUN3D-1 maps side by side 10 m apart (one map
+every 5th frame, a redkitchen map of frames 800-890 whose scans come from frames 930-999, partly beyond the
+mapped stretch (where a pose slid along the room may seat a scan as well as the right one) and, with --combined-map, the redkitchen and SUN3D-1 maps side by side 10 m apart (one map
 larger than any scan: the candidate places do the work). Scans are the frames between map frames (an evenly
 spread subset per map); off-map scans come from another building (SUN3D for redkitchen, redkitchen for SUN3D,
 7-Scenes stairs for the combined map). A scan's truth is T_map_scan: it maps the scan's camera-frame points
@@ -52,6 +53,8 @@ MAX_TE = 0.05  # success: translation error below this, m
 FIT_DISTANCE = 0.05  # the baselines' fitness distance, m
 TRACK_LAG = 2  # tracking's guess: the true pose this many frames earlier
 COMBINED_SHIFT = np.array([10.0, 0.0, 0.0])  # SUN3D-1 beside redkitchen in the combined map, m
+BEYOND_MAP = range(800, 900, 10)  # the map of the scans beyond its stretch: redkitchen validation frames
+BEYOND_SCANS = range(930, 1000)  # ... and the scans' frames: 3-10 s of camera motion past its last frame
 FIGURE_POINTS = 50_000  # at most this many map points in a figure
 METHODS = {  # --methods key -> table name
     "genreg": "GenReg MapLocalizer",
@@ -122,7 +125,7 @@ def sequence_case(key: str, name: str, seq: RGBDSequence, map_frames: list[int],
 
 def map_cases(n_scans: int, n_off: int, stride: int, voxel: float, combined: bool = False,
               root: str | None = None) -> list[MapCase]:
-    """The suite's maps: redkitchen, SUN3D-1, SUN3D-2 (and, with `combined`, redkitchen + SUN3D-1)."""
+    """The suite's maps: redkitchen, redkitchen beyond its stretch, SUN3D-1, SUN3D-2 (and, with `combined`, redkitchen + SUN3D-1)."""
     kitchen = RGBDSequence.redkitchen(root)
     sun = {f: RGBDSequence.sun3d(f, root) for f in (1, 2)}
     k_map, k_pool = list(REDKITCHEN_VAL_FRAMES)[::10], list(REDKITCHEN_VAL_FRAMES)
@@ -130,7 +133,9 @@ def map_cases(n_scans: int, n_off: int, stride: int, voxel: float, combined: boo
     sun_off = (off_map_scans([sun[1]], [list(sun[1].frame_indices)], (n_off + 1) // 2, stride)
                + off_map_scans([sun[2]], [list(sun[2].frame_indices)], n_off // 2, stride))
     out = [sequence_case("redkitchen", "redkitchen 800-990/10", kitchen, k_map, k_pool, n_scans, sun_off,
-                         stride, voxel)]
+                         stride, voxel),
+           sequence_case("beyond", "redkitchen 800-890/10, scans 930-999", kitchen, list(BEYOND_MAP), list(BEYOND_SCANS),
+                         n_scans, [], stride, voxel)]
     for f, seq in sun.items():
         frames = list(seq.frame_indices)
         out.append(sequence_case(f"sun3d-{f}", f"sun3d-{f} every 5th", seq, frames[::5], frames, n_scans,

@@ -8,7 +8,8 @@ correspondences the pose keeps (the inlier ratio) and how well the geometry cons
 where success is the model's rule (`ConfidenceModel.success`: scenes RE < 2 deg and TE < 5 cm; objects
 RE < 5 deg). It is fitted on training pairs only (`scripts/calibrate_confidence.py`) for one checkpoint,
 one model per refinement (a `refinement.REFINEMENTS` name: the features' scale depends on it) and one for
-map tracking (`result.TRACKING_CALIBRATION`), and ships beside the checkpoint as `<name>.confidence.json`,
+map tracking (`result.TRACKING_CALIBRATION`), one of global results in a map over `MAP_FEATURES`
+(`MAP_CALIBRATION`: a registration's probability and how much of the map the pose says the scan saw through), and ships beside the checkpoint as `<name>.confidence.json`,
 tied to the checkpoint by its SHA-256: a calibration never silently serves another model, nor a refinement
 it was not fitted for. How a result's confidence is worked out from it (the rival, the degeneracy factor,
 and a registrar without a calibration for its refinement) is `genreg_core.result`'s.
@@ -32,6 +33,9 @@ SPACINGS = (1.0, 2.0, 3.0, 5.0)  # overlap shares at these many target spacings
 FEATURES = ("log_share_1", "log_share_2", "log_share_3", "log_share_5", "log_inlier_ratio", "log_constraint",
             "share_1_over_3", "share_2_over_5")
 FLOOR = 1e-3  # logs of shares below this are taken at it
+MAP_CALIBRATION = "map_global"  # the key of the model of global results in a map (`MapLocalizer`): it refines a
+MAP_FEATURES = ("logit_probability", "log_see_through")  # registration's probability with the see-through share
+FEATURES_OF = {MAP_CALIBRATION: MAP_FEATURES}  # the models over other features than FEATURES
 SUFFIX = ".confidence.json"
 
 
@@ -41,6 +45,14 @@ def features(shares: Sequence[float], inlier_ratio: float, constraint: float) ->
     s1, s2, s3, s5 = (max(float(x), FLOOR) for x in shares)
     logs = [math.log(x) for x in (s1, s2, s3, s5, max(inlier_ratio, FLOOR), max(constraint, FLOOR))]
     return np.array([*logs, s1 / s3, s2 / s5])
+
+
+def map_features(probability: float, see_through: float) -> np.ndarray:
+    """The `MAP_FEATURES` vector of a global result in a map: its registration's probability (as a logit, kept
+    within FLOOR of 0 and 1) and the log of the share of the map its pose says the scan saw through
+    (`score.see_through`, taken at FLOOR when below)."""
+    p = min(max(float(probability), FLOOR), 1.0 - FLOOR)
+    return np.array([math.log(p / (1.0 - p)), math.log(max(float(see_through), FLOOR))])
 
 
 def feature_vector(verification: dict[str, float]) -> np.ndarray:
@@ -94,7 +106,7 @@ class ConfidenceModel:
             model = cls(**{**values, "by_refinement": models, "features": tuple(values["features"])})
         except (OSError, ValueError, TypeError, KeyError, AttributeError) as exc:
             raise CheckpointError(f"confidence calibration {path} is unreadable: {exc}") from None
-        if model.features != FEATURES or any(len(m.coef) != len(FEATURES) for m in models.values()):
+        if model.features != FEATURES or any(len(m.coef) != len(FEATURES_OF.get(k, FEATURES)) for k, m in models.items()):
             raise CheckpointError(f"confidence calibration {path} has features {model.features}, expected {FEATURES}")
         if checkpoint is not None and model.checkpoint_sha256 != file_sha256(checkpoint):
             raise CheckpointError(f"confidence calibration {path} was fitted for another checkpoint than {checkpoint}")

@@ -21,7 +21,12 @@ radius, kept in memory and, with `cache_dir`, on disk by the map's content hash)
 against every place in batched `Registrar.register_many` calls at `screen_model_points` points (the same
 weights), unrefined (GenReg is rotation invariant: no orientation is searched); the best `candidates` by confidence are verified against a crop
 of the whole map around each (registration from the candidate's pose as the initial guess), and the most
-confident pose, the whole map's included, wins, bounded by its distinct rivals (below).
+confident pose, the whole map's included, wins, bounded by its distinct rivals (below). Each of these global
+results is `judged` first: its confidence becomes the calibration's map model's (`MAP_CALIBRATION`, fitted
+on training maps with scans on and beyond them: `scripts/calibrate_confidence.py fit-map`) over its
+registration's probability and the share of the map its pose says the scan saw through
+(`score.see_through`): a scan that reaches past the mapped stretch may seat as well slid along the room as
+at its place, but the slid pose puts the map's walls in front of surfaces the scan saw.
 
 A gravity-aligned map (z up, as LiDAR maps are) can instead be searched through its place index
 (`retrieve` > 0; `genreg_core.place_index`, built once per map and cached with it): the scan's polar height
@@ -69,7 +74,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from genreg_core.checkpoint import resized
-from genreg_core.confidence import SPACINGS
+from genreg_core.confidence import MAP_CALIBRATION, MAP_FEATURES, SPACINGS, map_features
 from genreg_core.config import SCENE_MODEL, SCENE_REGISTRATION, LocalizationConfig
 from genreg_core.errors import ConfigError, TooFewPointsError
 from genreg_core.geometry import apply_transform
@@ -88,7 +93,7 @@ from genreg_core.result import (
     below_rival,
     build_result,
 )
-from genreg_core.score import FITNESS_SPACINGS, TIGHT_SPACINGS, TargetIndex, overlap_shares
+from genreg_core.score import FITNESS_SPACINGS, TIGHT_SPACINGS, TargetIndex, overlap_shares, see_through
 
 # The settings are `LocalizationConfig`'s (their measurements: MODEL_CARD "Map relocalisation"). Below:
 # implementation details that change no result.
@@ -305,19 +310,45 @@ class MapLocalizer:
                 return tracked
             if indexed:  # an unsure track: the place index's answer, bounded by the track's if they differ
                 return self.chosen([self.retrieved(scan, (centroid, radius)), *([tracked] if tracked else [])])
-            searched = self.refined(scan, guess, apply_transform(guess, centroid[None])[0], radius)
+            searched = self.judged(self.refined(scan, guess, apply_transform(guess, centroid[None])[0], radius), scan)
             return searched if tracked is None else max(tracked, searched, key=lambda r: r.confidence)
         if indexed:
             return self.retrieved(scan, (centroid, radius))
-        whole = reg.register(scan, self.map)
+        return self.chosen(self.searched(scan, (centroid, radius, extent)))
+
+    def searched(self, scan: np.ndarray, geometry: tuple[np.ndarray, float, float]) -> list[RegistrationResult]:
+        """The global results of a voxelised scan without a guess or an index (`geometry`: its `scan_geometry`),
+        each `judged`: its registration against the whole map and, unless that stands (a map not much larger
+        than the scan, or confident enough), the `candidates` best screened places, verified against crops."""
+        centroid, radius, extent = geometry
+        c = self.config
+        whole = self.judged(self.registrar.register(scan, self.map), scan)
         places = self.places(radius)
         if self.extent < c.whole_map_ratio * extent or whole.confidence >= c.accept_whole or not places:
-            return whole
+            return [whole]
         screened = self.screen(scan, [self.map[rows] for rows in places])
         best = sorted(range(len(screened)), key=lambda k: -screened[k].confidence)[: c.candidates]
-        verified = [self.refined(scan, screened[k].transformation,
-                                 apply_transform(screened[k].transformation, centroid[None])[0], radius) for k in best]
-        return self.chosen([whole, *verified])
+        return [whole, *(self.judged(self.refined(scan, screened[k].transformation, apply_transform(
+            screened[k].transformation, centroid[None])[0], radius), scan) for k in best)]
+
+    @property
+    def map_confidence(self) -> Confidence:
+        """How global results' confidence is worked out: the registrar's calibration's map model."""
+        return Confidence(self.registrar.calibration, MAP_CALIBRATION)
+
+    def judged(self, result: RegistrationResult, scan: np.ndarray) -> RegistrationResult:
+        """A global result (a registration against the map) with the confidence of the calibration's map model
+        (`map_confidence`) over its registration's probability and the share of the map its pose says the
+        scan (voxelised, sensor frame) saw through (`score.see_through`: a pose slid along a room puts walls in
+        front of what the scan saw); both are added to its `verification`. Without that model the confidence
+        stays the registration's."""
+        T = result.transformation
+        reach = float(np.linalg.norm(scan, axis=1).max())
+        share, _ = see_through(scan, self.crop(T[:3, 3], reach), T, self.voxel_size)
+        x = map_features(result.confidence, share)
+        judge = self.map_confidence
+        return replace(result, confidence=judge.probability(x) if judge.calibrated else result.confidence,
+                       verification={**result.verification, **dict(zip(MAP_FEATURES, x.tolist(), strict=True))})
 
     @property
     def tracking_confidence(self) -> Confidence:

@@ -42,6 +42,15 @@ COVARIANCE_FLOOR_RAD = 0.0020
 DEGENERACY_RATIO = 0.005
 
 
+# see_through: a scan's rays are binned by direction in bins of SEE_THROUGH_BIN_DEG degrees; a map point lies in
+# front of the surface the scan saw along its bin when it is nearer to the sensor than the bin's nearest scan
+# point by more than SEE_THROUGH_SPACINGS map spacings plus SEE_THROUGH_RELATIVE of that range (depth noise
+# grows with range). Chosen on redkitchen training maps (MODEL_CARD "Map relocalisation": beyond the map).
+SEE_THROUGH_BIN_DEG = 1.0
+SEE_THROUGH_SPACINGS = 3.0
+SEE_THROUGH_RELATIVE = 0.02
+
+
 class TargetIndex:
     """One target cloud's k-d tree (small_gicp, exact search) with what the scores need from it, each
     computed on first use: the point spacing and the normals at the rows asked (PCA of `NORMAL_NEIGHBOURS`
@@ -241,3 +250,44 @@ def pose_covariance(moved: np.ndarray, target: np.ndarray | TargetIndex, origin:
     sigma2 = float(r @ r) / max(len(r) - 6, 1)
     C = inflation * sigma2 * np.linalg.inv(H) + np.diag([floor[0] ** 2] * 3 + [floor[1] ** 2] * 3)
     return 0.5 * (C + C.T)
+
+
+def view_angles(points: np.ndarray, pole: np.ndarray, ahead: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(range, elevation from the plane normal to `pole`, azimuth about `pole` from `ahead`) of sensor-frame points."""
+    ranges = np.linalg.norm(points, axis=1)
+    elevation = np.arcsin(np.clip(points @ pole / np.maximum(ranges, 1e-12), -1.0, 1.0))
+    return ranges, elevation, np.arctan2(points @ np.cross(pole, ahead), points @ ahead)
+
+
+def see_through(scan: np.ndarray, map_points: np.ndarray, T: np.ndarray, spacing: float) -> tuple[float, int]:
+    """How much of the map a pose says the scan saw through: of the map points (`map_points`, map frame) that
+    fall in a viewing direction the scan (sensor frame, the sensor at its origin) has returns in, and lie at
+    or before its nearest return there (within `SEE_THROUGH_SPACINGS` x `spacing` + `SEE_THROUGH_RELATIVE`
+    of its range), the share that lie in front of it: surfaces the sensor would have seen had it stood at
+    T_map_scan `T`. A right pose leaves few (noise, moving things); a pose slid along a room or a corridor
+    puts walls in front of what the scan saw. Returns (share, points counted); directions are binned in
+    `SEE_THROUGH_BIN_DEG` degrees about the scan's least-seen axis (a camera's vertical, a LiDAR's up)."""
+    scan = np.asarray(scan, dtype=np.float64)
+    directions = scan / np.maximum(np.linalg.norm(scan, axis=1), 1e-12)[:, None]
+    axes = np.linalg.eigh(directions.T @ directions)[1]  # ascending: the least-seen axis first, the most-seen last
+    pole, ahead, step = axes[:, 0], axes[:, 2], np.radians(SEE_THROUGH_BIN_DEG)
+
+    def bins(points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        ranges, elevation, azimuth = view_angles(points, pole, ahead)
+        row, column = np.floor(elevation / step).astype(np.int64), np.floor(azimuth / step).astype(np.int64)
+        return ranges, (row + 1024) * 4096 + column + 2048
+
+    ranges, keys = bins(scan)
+    order = np.argsort(keys, kind="stable")
+    seen, first = np.unique(keys[order], return_index=True)
+    nearest = np.minimum.reduceat(ranges[order], first)
+    R, t = T[:3, :3], T[:3, 3]
+    local = (np.asarray(map_points, dtype=np.float64) - t) @ R  # map points in the scan's frame
+    map_ranges, map_keys = bins(local)
+    at = np.clip(np.searchsorted(seen, map_keys), 0, len(seen) - 1)
+    looked = seen[at] == map_keys
+    margin = SEE_THROUGH_SPACINGS * spacing + SEE_THROUGH_RELATIVE * nearest[at]
+    front = looked & (map_ranges < nearest[at] - margin)
+    counted = int(np.count_nonzero(front | (looked & (map_ranges <= nearest[at] + margin))))
+    return float(np.count_nonzero(front)) / max(counted, 1), counted
+

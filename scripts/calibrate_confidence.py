@@ -5,6 +5,7 @@
     python scripts/calibrate_confidence.py fit modelnet40_dgcnn
     python scripts/calibrate_confidence.py held-out 7scenes       # AUC, ECE, confident-wrong on held-out pairs
     python scripts/calibrate_confidence.py fit-tracking 7scenes   # adds MapLocalizer's tracking model
+    python scripts/calibrate_confidence.py fit-map 7scenes        # adds MapLocalizer's model of global results
 
 `fit` registers training pairs through the public API with each refinement the calibration serves (the
 current calibration, if any, choosing among PDSAC's modes as in use; fit twice after a change of features),
@@ -31,6 +32,12 @@ fused from every 10th redkitchen training frame of four 200-frame stretches (0-7
 as scans, each from guesses 2 cm / 1 deg to 1 m / 45 deg off the truth (scans of other stretches are not
 used: their ground truth disagrees with the map's by up to 4 deg and 7 cm, 7-Scenes' drift). Its cross-validated figures and reliability diagram
 (docs/reliability_7scenes_tracking.png) are printed and written as `fit`'s.
+`fit-map` fits the model of `MapLocalizer`'s global results (`confidence.MAP_CALIBRATION`: a registration's
+probability and the see-through share, `MapLocalizer.judged`) the same way: maps fused from every 10th frame
+of 100-frame redkitchen training stretches (starting at 0, 100, ..., 700), scans between the map frames, up to
+70 frames before the stretch and 130-199 frames after it (never past frame 799): partly off the map, where a
+pose slid along the room seats the scan as well as the right one. Every candidate result of a scan
+(`MapLocalizer.searched`) is a row; a scan's rows share a fold (docs/reliability_7scenes_map.png).
 Held-out pairs: redkitchen frames 800-999 (30, 60, 90 apart, kidnapped), SUN3D (unseen; 20 apart,
 kidnapped); ModelNet40 test split, unseen categories (clean up to 180 deg; crops).
 """
@@ -286,13 +293,65 @@ def fit_tracking(model: str, per_map: int) -> None:
     print("wrote", figure)
 
 
+MAP_STRETCH = 100  # fit-map: frames of a training map's stretch (every 10th fused)
+MAP_STARTS = range(0, 800, 100)  # ... its first frames
+MAP_BEYOND = (130, 200, 7)  # scans this many frames after the stretch's start: (first, stop, step)
+MAP_BEFORE = (-70, 0, 7)  # ... and before it
+
+
+def map_rows(per_map: int) -> Iterator[tuple[str, int, np.ndarray, bool]]:
+    """(set, scan, features, success) of every candidate of global results in the redkitchen training maps
+    (`fit-map`)."""
+    from genreg_core.confidence import MAP_FEATURES
+    from genreg_core.localization import MapLocalizer
+    from genreg_core.preprocess import voxel_downsample
+
+    kitchen, scan_id = RGBDSequence.redkitchen(), 0
+    _, ok = success(SCENE_MODEL)
+    for start in MAP_STARTS:
+        loc = MapLocalizer(kitchen.fused(range(start, start + MAP_STRETCH, 10), stride=4))
+        between = [i for i in range(start, start + MAP_STRETCH) if i % 10]
+        sets = {"between": [between[int(k)] for k in np.linspace(0, len(between) - 1, per_map)],
+                "beyond": list(range(start + MAP_BEYOND[0], start + MAP_BEYOND[1], MAP_BEYOND[2])),
+                "before": list(range(start + MAP_BEFORE[0], start + MAP_BEFORE[1], MAP_BEFORE[2]))}
+        for name, frames in sets.items():
+            for i in tqdm([i for i in frames if 0 <= i < 800 and i in kitchen], desc=f"map {start} {name}", leave=False):
+                scan = voxel_downsample(kitchen.points(i, stride=4).astype(np.float64), loc.voxel_size)
+                truth, scan_id = kitchen.pose(i), scan_id + 1
+                for result in loc.searched(scan, loc.scan_geometry(scan)):
+                    x = np.array([result.verification[f] for f in MAP_FEATURES])
+                    yield name, scan_id, x, ok(*transform_errors(result.transformation, truth))
+
+
+def fit_map(model: str, per_map: int) -> None:
+    from genreg_core.confidence import MAP_CALIBRATION
+
+    if model != SCENE_MODEL:
+        raise SystemExit(f"fit-map: map localisation is calibrated for the scene model {SCENE_MODEL}, not {model}")
+    rows = list(map_rows(per_map))
+    X, y, groups = np.stack([r[2] for r in rows]), np.array([r[3] for r in rows]), np.array([r[1] for r in rows])
+    logistic, held = fitted_logistic(X, y, groups)
+    print(f"{model} {MAP_CALIBRATION}: {len(rows)} candidate results of {len(set(groups))} training scans, "
+          f"5-fold cross-validated (coef {np.round(logistic.coef, 3).tolist()}, intercept {logistic.intercept:.3f}):")
+    print(f"  {'all':28s}", summary(held, y))
+    for name in dict.fromkeys(r[0] for r in rows):
+        mask = np.array([r[0] == name for r in rows])
+        print(f"  {name:28s}", summary(held[mask], y[mask]))
+    print("wrote", save_calibration(model, {MAP_CALIBRATION: logistic},
+                                    f"{len(rows)} global results in redkitchen 0-799 maps, scans on and beyond them"))
+    figure = REPO / "docs" / f"reliability_{model}_map.png"
+    reliability_diagram(held, y, f"{model} global results in maps: training maps, 5-fold cross-validated ({SCENE_RULE})",
+                        figure)
+    print("wrote", figure)
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("mode", choices=("fit", "held-out", "fit-tracking"))
+    parser.add_argument("mode", choices=("fit", "held-out", "fit-tracking", "fit-map"))
     parser.add_argument("model", help="shipped model name (7scenes, modelnet40_dgcnn, modelnet40_partial, modelnet40)")
     parser.add_argument("--pairs", type=int, default=60, help="pairs per set, or scans per map set (default 60)")
     args = parser.parse_args(argv)
-    {"fit": fit, "held-out": held_out, "fit-tracking": fit_tracking}[args.mode](args.model, args.pairs)
+    {"fit": fit, "held-out": held_out, "fit-tracking": fit_tracking, "fit-map": fit_map}[args.mode](args.model, args.pairs)
     return 0
 
 

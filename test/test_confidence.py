@@ -12,7 +12,16 @@ import numpy as np
 import pytest
 
 from genreg_core.checkpoint import resolve_checkpoint
-from genreg_core.confidence import FEATURES, ConfidenceModel, calibration_path, features, load_beside
+from genreg_core.confidence import (
+    FEATURES,
+    FEATURES_OF,
+    MAP_CALIBRATION,
+    ConfidenceModel,
+    calibration_path,
+    features,
+    load_beside,
+    map_features,
+)
 from genreg_core.config import SCENE_REGISTRATION, RefineConfig
 from genreg_core.data import FramePairs, RGBDSequence
 from genreg_core.errors import CheckpointError, UncalibratedWarning
@@ -28,9 +37,14 @@ def test_every_shipped_model_has_its_own_calibration(name):
     assert model is not None and model.features == FEATURES
     assert Registrar.from_checkpoint(name).calibration == model
     assert model.by_refinement  # every refinement it serves: a well-seated pose against one that overlaps nothing
-    for method in model.by_refinement:
+    for method in set(model.by_refinement) - set(FEATURES_OF):
         assert model.probability(features([0.9, 0.97, 0.99, 1.0], 0.6, 1.0), method) > 0.8
         assert model.probability(features([0.01, 0.03, 0.05, 0.1], 0.01, 1.0), method) < 0.1
+    if MAP_CALIBRATION in model.by_refinement:  # registrations that see through the map or not
+        assert model.probability(map_features(0.97, 0.01), MAP_CALIBRATION) > 0.8
+        assert model.probability(map_features(0.7, 0.01), MAP_CALIBRATION) > 0.5
+        assert model.probability(map_features(0.7, 0.2), MAP_CALIBRATION) < 0.5  # a slide seen in training
+        assert model.probability(map_features(0.05, 0.01), MAP_CALIBRATION) < 0.1
 
 
 def test_a_calibration_serves_only_its_checkpoint_and_its_features(tmp_path):

