@@ -339,6 +339,10 @@ class LocalizationConfig:
     batch_size: int = setting(16, "Places registered per batched network call.", low=1, high=1024)
     candidates: int = setting(3, "The best-screened places verified by registration from their pose against "
                               "the map around each (crop_radius).", low=1, high=1000)
+    verify_above: float = setting(0.01, "A screened place is verified only if its screening confidence reaches "
+                                  "this (0: always): the lowest of a place that verified right on redkitchen "
+                                  "training maps was 0.017; a scan of another place screens below it and is "
+                                  "rejected without verifying.", low=0.0, high=1.0)
     crop_radius: float = setting(1.5, "A verification, or GenReg from a guess, registers against the map within "
                                  "this many scan radii of the scan's predicted centre.", low=0.1, high=100.0)
     track_below: float = setting(0.5, "With a guess, a tracked pose (GICP) less confident than this is checked "

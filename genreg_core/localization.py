@@ -319,7 +319,8 @@ class MapLocalizer:
     def searched(self, scan: np.ndarray, geometry: tuple[np.ndarray, float, float]) -> list[RegistrationResult]:
         """The global results of a voxelised scan without a guess or an index (`geometry`: its `scan_geometry`),
         each `judged`: its registration against the whole map and, unless that stands (a map not much larger
-        than the scan, or confident enough), the `candidates` best screened places, verified against crops."""
+        than the scan, or confident enough), the `candidates` best screened places that screened at
+        `verify_above` or more, verified against crops."""
         centroid, radius, extent = geometry
         c = self.config
         whole = self.judged(self.registrar.register(scan, self.map), scan)
@@ -327,7 +328,8 @@ class MapLocalizer:
         if self.extent < c.whole_map_ratio * extent or whole.confidence >= c.accept_whole or not places:
             return [whole]
         screened = self.screen(scan, [self.map[rows] for rows in places])
-        best = sorted(range(len(screened)), key=lambda k: -screened[k].confidence)[: c.candidates]
+        best = [k for k in sorted(range(len(screened)), key=lambda k: -screened[k].confidence)[: c.candidates]
+                if screened[k].confidence >= c.verify_above]
         return [whole, *(self.judged(self.refined(scan, screened[k].transformation, apply_transform(
             screened[k].transformation, centroid[None])[0], radius), scan) for k in best)]
 
