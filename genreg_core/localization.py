@@ -291,11 +291,13 @@ class MapLocalizer:
         if len(scan) < reg.config.min_points:
             raise TooFewPointsError(f"source has {len(scan)} points after voxelising to the map's "
                                     f"{self.voxel_size:.3g}; registration needs at least {reg.config.min_points}")
-        centroid, radius, extent = self.scan_geometry(scan)
         indexed, c = self.config.retrieve > 0, self.config
+        # with the index every alignment is against the whole map: no local map or places, so the scan's
+        # geometry (centroid, radius, extent) is not needed
+        geometry = None if indexed else self.scan_geometry(scan)
         if guess is not None:  # tracking runs with the calibration's tracking model only
-            tracked = self.track(scan, guess, (centroid, radius), self.whole_map() if indexed else None) \
-                if self.tracking_calibrated else None
+            tracked = self.track(scan, guess, None if geometry is None else geometry[:2],
+                                 self.whole_map() if indexed else None) if self.tracking_calibrated else None
             # with the index, a track that moved beyond GICP's reach from its guess (a stale guess, which may
             # have slid onto a look-alike place along a repeating street) is checked like an unsure one
             far = indexed and tracked is not None and distinct_poses(
@@ -304,11 +306,15 @@ class MapLocalizer:
             if tracked is not None and tracked.confidence >= c.track_below and not far:
                 return tracked
             if indexed:  # an unsure track: the place index's answer, bounded by the track's if they differ
-                return self.chosen([self.retrieved(scan, (centroid, radius)), *([tracked] if tracked else [])])
+                return self.chosen([self.retrieved(scan), *([tracked] if tracked else [])])
+            assert geometry is not None
+            centroid, radius, _ = geometry
             searched = self.refined(scan, guess, apply_transform(guess, centroid[None])[0], radius)
             return searched if tracked is None else max(tracked, searched, key=lambda r: r.confidence)
         if indexed:
-            return self.retrieved(scan, (centroid, radius))
+            return self.retrieved(scan)
+        assert geometry is not None
+        centroid, radius, extent = geometry
         whole = reg.register(scan, self.map)
         places = self.places(radius)
         if self.extent < c.whole_map_ratio * extent or whole.confidence >= c.accept_whole or not places:
@@ -351,14 +357,15 @@ class MapLocalizer:
         """The voxelised scan aligned by GICP from `guess` (T_map_scan) against the local map around it
         (`local`), verified and built into a result as a registration is (`result.build_result`: inlier ratio
         NaN, taken as 1: no network pass; no generated clouds; `start` "initial_guess"). `geometry`: the
-        scan's (centroid, radius) from `scan_geometry`, if known. Its confidence is the calibration's tracking
+        scan's (centroid, radius) from `scan_geometry`, if known (used only to find the local map). Its confidence is the calibration's tracking
         model's (`tracking_confidence`; without one, uncalibrated as `genreg_core.result` says). None when the
         map holds too few points around the guess. `local`: the map to align against (default: `local`'s)."""
         t0 = time.perf_counter()
-        centroid, radius = geometry or self.scan_geometry(scan)[:2]
-        local = local or self.local(apply_transform(guess, centroid[None])[0], radius)
         if local is None:
-            return None
+            centroid, radius = geometry or self.scan_geometry(scan)[:2]
+            local = self.local(apply_transform(guess, centroid[None])[0], radius)
+            if local is None:
+                return None
         c = self.config
         rows = np.random.default_rng(self.registrar.config.seed).permutation(len(scan))[:c.track_points]
         sample = scan[np.sort(rows)]
@@ -412,7 +419,7 @@ class MapLocalizer:
             self._whole = LocalMap(self.map.mean(axis=0), float("inf"), True, index)
         return self._whole
 
-    def retrieved(self, scan: np.ndarray, geometry: tuple[np.ndarray, float]) -> RegistrationResult:
+    def retrieved(self, scan: np.ndarray) -> RegistrationResult:
         """A scan without a guess placed by the place index: each of the `retrieve` places and headings it
         retrieves is aligned coarsely by VGICP against the whole map (`screen_points` of the scan's points,
         `COARSE_ITERATIONS` iterations, voxels of `screen_voxels`) and scored by the share of the points it
@@ -441,9 +448,9 @@ class MapLocalizer:
                                                                c.rival_distance * voxel) for j in kept):
                 kept.append(int(k))
         t2 = time.perf_counter()
-        results = [r for k in kept if (r := self.track(scan, coarse[k], geometry, whole)) is not None]
+        results = [r for k in kept if (r := self.track(scan, coarse[k], local=whole)) is not None]
         if not results:  # nothing retrieved near enough to the map to align: the whole map from the identity
-            results = [self.track(scan, np.eye(4), geometry, whole) or self.registrar.register(scan, self.map)]
+            results = [self.track(scan, np.eye(4), local=whole) or self.registrar.register(scan, self.map)]
         best = self.chosen(results)
         best.timings = {"retrieve": t1 - t0, "screen": t2 - t1, "refine": time.perf_counter() - t2,
                         "total": time.perf_counter() - t0}
