@@ -32,7 +32,9 @@ results are verified for one scan, a distinct pose among them is the chosen one'
 distinct poses cannot both be right, so the confidence is at most 1 - the rival's; the rival is named
 among the result's `unconstrained` motions ("translation along (x, y, z) to a rival pose d m away": a
 slide along a road or a corridor whose structure repeats) and widens the covariance. The map may be
-voxelised on load (`map_voxel`). With the index, tracking aligns against the whole map too (no local maps
+voxelised on load (`map_voxel`; with `cache_dir`, once: kept there), and GICP's target may be a coarser
+voxelisation of it (`gicp_voxel`: its covariances are most of a large map's load; the scores still query
+the map). With the index, tracking aligns against the whole map too (no local maps
 to rebuild as the robot moves), and an unsure track, or one that moved beyond GICP's reach from its guess
 (`track_distance`: the guess was stale), is checked by the index's search rather than GenReg.
 
@@ -77,7 +79,7 @@ from genreg_core.place_index import VERSION as INDEX_VERSION
 from genreg_core.place_index import IndexGeometry, PlaceIndex, hit_pose
 from genreg_core.prepare import check_transform, robust_extent, validate_cloud
 from genreg_core.preprocess import voxel_downsample
-from genreg_core.refine import VoxelTarget, gicp_target
+from genreg_core.refine import GICPTarget, VoxelTarget, gicp_target
 from genreg_core.registration import COARSE_ITERATIONS, Registrar, distinct_poses
 from genreg_core.result import (
     TRACKING_CALIBRATION,
@@ -99,11 +101,14 @@ EXTENT_SAMPLES = 200_000  # the map's robust extent from this many of its points
 
 
 def median_spacing(points: np.ndarray, samples: int = SPACING_SAMPLES, seed: int = 0,
-                   tree: cKDTree | None = None) -> float:
+                   tree: cKDTree | None = None, index: TargetIndex | None = None) -> float:
     """The median distance from a point to its nearest other point, over up to `samples` points (`tree`:
-    the points' k-d tree, if built)."""
-    tree = tree if tree is not None else cKDTree(points)
+    the points' scipy k-d tree, or `index`: their `TargetIndex`, if built)."""
     rows = np.random.default_rng(seed).choice(len(points), size=min(samples, len(points)), replace=False)
+    if index is not None and tree is None:
+        _, squared = index.tree.batch_knn_search(points[rows], 2, num_threads=index.threads)
+        return float(np.median(np.sqrt(squared[:, 1])))
+    tree = tree if tree is not None else cKDTree(points)
     distances, _ = tree.query(points[rows], k=2)
     return float(np.median(distances[:, 1]))
 
@@ -147,6 +152,34 @@ def write_places(path: Path, places: list[np.ndarray]) -> None:
         os.replace(path.with_suffix(".tmp.npz"), path)
     except OSError as exc:
         warnings.warn(f"map places not cached in {path.parent}: {exc.strerror or exc}", stacklevel=3)
+
+
+def read_points(path: Path) -> np.ndarray | None:
+    """(M, 3) float64 points written by `write_points`, or None when the file cannot be read (they are then
+    worked out again)."""
+    try:
+        points = np.load(path, allow_pickle=False)
+    except (OSError, ValueError):
+        return None
+    return points if points.dtype == np.float64 and points.ndim == 2 and points.shape[1] == 3 else None
+
+
+def write_points(path: Path, points: np.ndarray) -> None:
+    """Points as one .npy file, whole or absent (written aside, then renamed); a folder that cannot be
+    written leaves them in memory only, with a warning."""
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        np.save(path.with_suffix(".tmp.npy"), points)
+        os.replace(path.with_suffix(".tmp.npy"), path)
+    except OSError as exc:
+        warnings.warn(f"map points not cached in {path.parent}: {exc.strerror or exc}", stacklevel=3)
+
+
+def content_key(points: np.ndarray) -> str:
+    """A short hash of an array's values, dtype and shape (cache file names)."""
+    digest = hashlib.sha1(np.ascontiguousarray(points).data)
+    digest.update(f"{points.dtype.str}{points.shape}".encode())
+    return digest.hexdigest()[:16]
 
 
 def read_index(path: Path, geometry: IndexGeometry) -> PlaceIndex | None:
@@ -195,8 +228,9 @@ class MapLocalizer:
         """`map_xyz`: (M, 3) map points (metres, or any units the scans share); `registrar`: the loaded
         Registrar to localise with (None: the scene model `SCENE_MODEL` with the scene profile
         `SCENE_REGISTRATION`); `config`: the localisation settings (their limits are checked when it is
-        built); `cache_dir`: where the candidate places are kept between runs (files keyed by the map's
-        content hash and the settings; None: in memory only)."""
+        built); `cache_dir`: where the candidate places, the place index and the voxelised map (`map_voxel`,
+        `gicp_voxel`) are kept between runs (files keyed by the map's content hash and the settings; None: in
+        memory only)."""
         if not isinstance(config, LocalizationConfig):
             raise ConfigError(f"config must be a LocalizationConfig, got {type(config).__name__}")
         self.registrar = registrar or Registrar.from_checkpoint(SCENE_MODEL, SCENE_REGISTRATION)
@@ -205,13 +239,23 @@ class MapLocalizer:
             raise ConfigError(f"localization.place_points ({config.place_points}) must be at least the "
                               f"registration's min_points ({min_points})")
         finite, _ = validate_cloud(map_xyz, "map", min_points)
-        if config.map_voxel > 0:
-            finite = voxel_downsample(np.asarray(finite, dtype=np.float64), config.map_voxel)
         self.config = config
+        self.cache_dir = None if cache_dir is None else Path(cache_dir)
+        if config.map_voxel > 0:
+            finite = self.voxelised(finite, config.map_voxel, "map")
         self.map = np.ascontiguousarray(finite, dtype=np.float64)
-        self.tree = kd_tree(self.map)
-        self.voxel_size = float(config.voxel_size) or median_spacing(self.map, tree=self.tree)
         self.threads = config.threads or int(os.environ.get("OMP_NUM_THREADS") or 1)
+        self.map_threads = config.map_threads or int(os.environ.get("OMP_NUM_THREADS") or 1)
+        self._tree: cKDTree | None = None  # the map's scipy k-d tree (places, crops, local maps), on first use
+        # with the place index, the whole map's TargetIndex (small_gicp's k-d tree: GICP's, the scores') is
+        # the only tree it needs; the map's resolution is measured on it
+        self._map_index = TargetIndex(self.map, self.threads, build_threads=self.map_threads) \
+            if config.retrieve else None
+        self.voxel_size = float(config.voxel_size) or (
+            median_spacing(self.map, tree=self.tree) if self._map_index is None
+            else median_spacing(self.map, index=self._map_index))
+        if self._map_index is not None:
+            self._map_index.spacing = self.voxel_size
         self._local: LocalMap | None = None
         self._whole: LocalMap | None = None  # the whole map prepared for GICP (retrieved places' alignment)
         self._voxels: VoxelTarget | None = None  # ... and for VGICP (their coarse alignment)
@@ -219,7 +263,6 @@ class MapLocalizer:
         rng = np.random.default_rng(0)
         sample = self.map if len(self.map) <= EXTENT_SAMPLES else self.map[rng.choice(len(self.map), EXTENT_SAMPLES)]
         _, self.extent = robust_extent(sample)
-        self.cache_dir = None if cache_dir is None else Path(cache_dir)
         self._key = hashlib.sha1(self.map.data).hexdigest()[:16] if cache_dir is not None else ""
         self._places: dict[float, list[np.ndarray]] = {}  # scan radius -> the places' map rows
         # candidates are screened without refinement (ranking only), then verified with the full profile
@@ -228,6 +271,26 @@ class MapLocalizer:
                                       pdsac=replace(cfg.pdsac, modes=1))
         self._screen_model = resized(self.registrar.model, config.screen_model_points) or self.registrar.model
         self._screener = Registrar(self._screen_model, self._screen_config, self.registrar.calibration)
+
+    def voxelised(self, points: np.ndarray, size: float, kind: str) -> np.ndarray:
+        """`voxel_downsample` of the points (as float64) to `size`; with `cache_dir`, read from and kept in
+        it by the points' content hash and the size (a large map's voxels once: seconds on millions of
+        points). `kind` names the file ("map": the map on load, "gicp": GICP's coarser map)."""
+        path = None if self.cache_dir is None else self.cache_dir / f"{kind}-{content_key(points)}-v{size:.6g}.npy"
+        cached = read_points(path) if path is not None and path.is_file() else None
+        if cached is not None:
+            return cached
+        voxels = voxel_downsample(np.asarray(points, dtype=np.float64), size)
+        if path is not None:
+            write_points(path, voxels)
+        return voxels
+
+    @property
+    def tree(self) -> cKDTree:
+        """The map's scipy k-d tree (`kd_tree`), built on first use (the place index's path needs none)."""
+        if self._tree is None:
+            self._tree = kd_tree(self.map)
+        return self._tree
 
     def places(self, radius: float) -> list[np.ndarray]:
         """The candidate places for scans of this radius, as map row indices: the map points within
@@ -412,9 +475,18 @@ class MapLocalizer:
 
     def whole_map(self) -> LocalMap:
         """The whole map indexed and prepared for GICP and VGICP (voxels of `screen_voxels` map voxels), once:
-        what retrieved places are aligned against."""
+        what retrieved places are aligned against. GICP's target is the map voxelised to `gicp_voxel` (when
+        set: its covariances are most of a large map's load), the VGICP voxels are merged from its points;
+        the scores (`track`) query the map itself. Built on `map_threads`."""
         if self._whole is None:
-            index = TargetIndex(self.map, self.threads, spacing=self.voxel_size)
+            index = self._map_index or TargetIndex(self.map, self.threads, spacing=self.voxel_size,
+                                                   build_threads=self.map_threads)
+            if self.config.gicp_voxel > 0:
+                coarse = self.voxelised(self.map, self.config.gicp_voxel, "gicp")
+                index.gicp = GICPTarget(coarse, threads=self.threads, build_threads=self.map_threads)
+            else:
+                index.gicp = GICPTarget(self.map, tree=index.tree, threads=self.threads,
+                                        build_threads=self.map_threads)
             self._voxels = VoxelTarget(gicp_target(index), self.config.screen_voxels * self.voxel_size)
             self._whole = LocalMap(self.map.mean(axis=0), float("inf"), True, index)
         return self._whole

@@ -48,11 +48,13 @@ class TargetIndex:
     neighbours, as Open3D's KNN normals). Queries run on `threads` threads (default: OMP_NUM_THREADS,
     else 1)."""
 
-    def __init__(self, points: np.ndarray, threads: int | None = None, spacing: float | None = None) -> None:
-        """`spacing`: the point spacing when known (a voxelised map's), else measured on first use."""
+    def __init__(self, points: np.ndarray, threads: int | None = None, spacing: float | None = None,
+                 build_threads: int = 1) -> None:
+        """`spacing`: the point spacing when known (a voxelised map's), else measured on first use;
+        `build_threads`: the threads that build the k-d tree (a map's, once)."""
         self.points = np.ascontiguousarray(points, dtype=np.float64)
         self.threads = threads or int(os.environ.get("OMP_NUM_THREADS") or 1)
-        self.tree = small_gicp.KdTree(self.points, num_threads=1)
+        self.tree = small_gicp.KdTree(self.points, num_threads=build_threads)
         self._spacing: float | None = spacing
         self._normals = np.zeros_like(self.points)
         self._has_normal = np.zeros(len(self.points), dtype=bool)
@@ -85,6 +87,11 @@ class TargetIndex:
             _, squared = self.tree.batch_knn_search(self.points, 2, num_threads=self.threads)
             self._spacing = float(np.median(np.sqrt(squared[:, 1])))
         return self._spacing
+
+    @spacing.setter
+    def spacing(self, value: float) -> None:
+        """The point spacing, measured elsewhere (a map's, on a sample of its points)."""
+        self._spacing = float(value)
 
     def normals(self, rows: np.ndarray) -> np.ndarray:
         """Unit normals (unoriented: only their line matters here) at these target rows: the PCA normal of
