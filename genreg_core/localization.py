@@ -186,17 +186,21 @@ def read_index(path: Path, geometry: IndexGeometry) -> PlaceIndex | None:
     """A place index written by `write_index`, or None when the file cannot be read (it is then built again)."""
     try:
         with np.load(path) as cached:
-            return PlaceIndex(geometry, cached["centres"], cached["descriptors"])
+            kept = cached["spectra"] if "spectra" in cached.files else None  # older files: worked out again
+            if kept is not None and kept.shape[:2] != cached["descriptors"].shape[:2]:
+                return None
+            return PlaceIndex(geometry, cached["centres"], cached["descriptors"], kept)
     except (OSError, ValueError, KeyError, zipfile.BadZipFile):
         return None
 
 
 def write_index(path: Path, index: PlaceIndex) -> None:
-    """A place index as one file, whole or absent (written aside, then renamed); a folder that cannot be
+    """A place index (its descriptors' spectra too) as one file, whole or absent (written aside, then renamed); a folder that cannot be
     written leaves it in memory only, with a warning."""
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
-        np.savez(path.with_suffix(".tmp.npz"), centres=index.centres, descriptors=index.descriptors)
+        np.savez(path.with_suffix(".tmp.npz"), centres=index.centres, descriptors=index.descriptors,
+                 spectra=index.spectra)
         os.replace(path.with_suffix(".tmp.npz"), path)
     except OSError as exc:
         warnings.warn(f"place index not cached in {path.parent}: {exc.strerror or exc}", stacklevel=3)
