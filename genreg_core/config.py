@@ -372,6 +372,10 @@ class LocalizationConfig:
     slide_reach: float = setting(14.0, "The fittest retrieved pose is also tried slid along the scan's main axis "
                                  "(a road, a corridor) by every two VGICP voxels up to this distance, m, both "
                                  "ways: a look-alike pose found there is its rival (0: off).", low=0.0, high=1000.0)
+    verify_fitness: float = setting(0.0, "With the place index, when no retrieved place's coarse (VGICP) alignment "
+                                    "seats this share of the scan's screened points, only the fittest is verified: "
+                                    "no slides, no rivals (a scan the map does not hold is rejected at the cost of "
+                                    "one alignment; 0: every candidate is verified).", low=0.0, high=1.0)
     gicp_voxel: float = setting(0.0, "With the place index, GICP (tracking, retrieved places) aligns against the "
                                 "map voxelised to this size, m, prepared once (its covariances); fitness, "
                                 "covariance and confidence are still worked out on the map (0: GICP on the map "

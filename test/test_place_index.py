@@ -183,3 +183,20 @@ def test_a_scan_of_another_place_is_not_confident(street: tuple[Scene, np.ndarra
     for _ in range(3):
         T = sensor_pose(rng.uniform(-50, 50), rng.uniform(-1.0, 1.0), 1.8, rng.uniform(-np.pi, np.pi))
         assert loc.localize(lidar_scan(other, T, rng, SENSOR).points).confidence < 0.5
+
+
+def test_a_scan_no_retrieved_place_fits_is_verified_once_and_not_confident(street: tuple[Scene, np.ndarray]) -> None:
+    scene, map_xyz = street
+    loc = MapLocalizer(map_xyz, config=LocalizationConfig(retrieve=8, map_voxel=0.2, verify_fitness=0.8))
+    rng = np.random.default_rng(9)
+    other = street_scene(11, length=160.0)
+    for _ in range(2):
+        T = sensor_pose(rng.uniform(-50, 50), rng.uniform(-1.0, 1.0), 1.8, rng.uniform(-np.pi, np.pi))
+        result = loc.localize(lidar_scan(other, T, rng, SENSOR).points)
+        assert result.confidence < 0.5
+        assert not any("rival pose" in u for u in result.unconstrained)  # one pose verified: no rival
+    for _ in range(3):  # the map's own scans fit: placed as without the setting
+        T = sensor_pose(rng.uniform(-50, 50), rng.uniform(-1.5, 1.5), 1.8, rng.uniform(-np.pi, np.pi))
+        result = loc.localize(lidar_scan(scene, T, rng, SENSOR).points)
+        re, te = transform_errors(result.transformation, T)
+        assert re < PLACED_RE_DEG and te < PLACED_TE_M and result.confidence >= 0.5, (re, te, result.confidence)
