@@ -182,28 +182,34 @@ def content_key(points: np.ndarray) -> str:
     return digest.hexdigest()[:16]
 
 
-def read_index(path: Path, geometry: IndexGeometry) -> PlaceIndex | None:
-    """A place index written by `write_index`, or None when the file cannot be read (it is then built again)."""
+INDEX_PARTS = ("centres", "descriptors")  # a cached place index's arrays, one .npy file each
+
+
+def read_index(stem: Path, geometry: IndexGeometry) -> PlaceIndex | None:
+    """A place index written by `write_index` (its files `stem`.<part>.npy), or None when one cannot be read
+    (it is then built again)."""
     try:
-        with np.load(path) as cached:
-            kept = cached["spectra"] if "spectra" in cached.files else None  # older files: worked out again
-            if kept is not None and kept.shape[:2] != cached["descriptors"].shape[:2]:
-                return None
-            return PlaceIndex(geometry, cached["centres"], cached["descriptors"], kept)
-    except (OSError, ValueError, KeyError, zipfile.BadZipFile):
+        parts = {name: np.load(stem.with_name(f"{stem.name}.{name}.npy"), allow_pickle=False) for name in INDEX_PARTS}
+    except (OSError, ValueError):
         return None
+    if len(parts["centres"]) != len(parts["descriptors"]):
+        return None
+    return PlaceIndex(geometry, parts["centres"], parts["descriptors"])
 
 
-def write_index(path: Path, index: PlaceIndex) -> None:
-    """A place index (its descriptors' spectra too) as one file, whole or absent (written aside, then renamed); a folder that cannot be
-    written leaves it in memory only, with a warning."""
+def write_index(stem: Path, index: PlaceIndex) -> None:
+    """A place index as one .npy file per array (plain files read in one pass, unlike an .npz's zip members:
+    a second on a large map; the descriptors' spectra are worked out again: faster than read from disk), each
+    whole or absent (written aside, then
+    renamed); a folder that cannot be written leaves it in memory only, with a warning."""
     try:
-        path.parent.mkdir(parents=True, exist_ok=True)
-        np.savez(path.with_suffix(".tmp.npz"), centres=index.centres, descriptors=index.descriptors,
-                 spectra=index.spectra)
-        os.replace(path.with_suffix(".tmp.npz"), path)
+        stem.parent.mkdir(parents=True, exist_ok=True)
+        for name in INDEX_PARTS:
+            path = stem.with_name(f"{stem.name}.{name}.npy")
+            np.save(path.with_suffix(".tmp.npy"), getattr(index, name))
+            os.replace(path.with_suffix(".tmp.npy"), path)
     except OSError as exc:
-        warnings.warn(f"place index not cached in {path.parent}: {exc.strerror or exc}", stacklevel=3)
+        warnings.warn(f"place index not cached in {stem.parent}: {exc.strerror or exc}", stacklevel=3)
 
 
 @dataclass(frozen=True)
@@ -469,8 +475,8 @@ class MapLocalizer:
             geometry = IndexGeometry(spacing=c.index_spacing, radius=c.index_radius, band=c.index_band)
             path = None if self.cache_dir is None else self.cache_dir / (
                 f"index-v{INDEX_VERSION}-{self._key}-s{c.index_spacing:.6g}-r{c.index_radius:.6g}-b{c.index_band:.6g}"
-                f"-m{c.map_voxel:.6g}.npz")
-            self._index = read_index(path, geometry) if path is not None and path.is_file() else None
+                f"-m{c.map_voxel:.6g}")
+            self._index = read_index(path, geometry) if path is not None else None
             if self._index is None:
                 self._index = PlaceIndex.build(self.map, geometry)
                 if path is not None:

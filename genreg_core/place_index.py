@@ -163,13 +163,11 @@ class Hit:
 class PlaceIndex:
     """Descriptors of a map's places and their ring keys' k-d tree."""
 
-    def __init__(self, geometry: IndexGeometry, centres: np.ndarray, descriptors: np.ndarray,
-                 spectra_of: np.ndarray | None = None) -> None:
-        """`spectra_of`: the descriptors' `spectra`, if kept (a cached index's: seconds on a large map)."""
+    def __init__(self, geometry: IndexGeometry, centres: np.ndarray, descriptors: np.ndarray) -> None:
         self.geometry = geometry
         self.centres = np.asarray(centres, dtype=np.float64)  # (K, 3): x, y, ground z
         self.descriptors = np.asarray(descriptors, dtype=np.float32)
-        self.spectra = spectra(self.descriptors) if spectra_of is None else np.asarray(spectra_of, np.complex64)
+        self.spectra = spectra(self.descriptors)
         self.stencil = Stencil(geometry)  # a scan's descriptor reuses it (built once, not per scan)
 
     def __len__(self) -> int:

@@ -56,7 +56,7 @@ class TargetIndex:
         self.threads = threads or int(os.environ.get("OMP_NUM_THREADS") or 1)
         self.tree = small_gicp.KdTree(self.points, num_threads=build_threads)
         self._spacing: float | None = spacing
-        self._normals = np.zeros_like(self.points)
+        self._normals = np.zeros(self.points.shape)  # calloc'd: pages touched only where normals are asked
         self._has_normal = np.zeros(len(self.points), dtype=bool)
         self._mean: np.ndarray | None = None  # the points' mean, the normals' centre (`plane_normals`)
         self._queries: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []  # the last few `nearest` calls
