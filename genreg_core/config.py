@@ -373,9 +373,10 @@ class LocalizationConfig:
                                  "(a road, a corridor) by every two VGICP voxels up to this distance, m, both "
                                  "ways: a look-alike pose found there is its rival (0: off).", low=0.0, high=1000.0)
     verify_fitness: float = setting(0.0, "With the place index, when no retrieved place's coarse (VGICP) alignment "
-                                    "seats this share of the scan's screened points, only the fittest is verified: "
-                                    "no slides, no rivals (a scan the map does not hold is rejected at the cost of "
-                                    "one alignment; 0: every candidate is verified).", low=0.0, high=1.0)
+                                    "seats this share of the scan's screened points, the fittest is not slid along "
+                                    "the scan's axis (slide_reach): a scan the map does not hold is rejected "
+                                    "sooner; its candidates are still verified (0: always slid).",
+                                    low=0.0, high=1.0)
     gicp_voxel: float = setting(0.0, "With the place index, GICP (tracking, retrieved places) aligns against the "
                                 "map voxelised to this size, m, prepared once (its covariances); fitness, "
                                 "covariance and confidence are still worked out on the map (0: GICP on the map "

@@ -510,7 +510,7 @@ class MapLocalizer:
         corridor); the `candidates` best distinct poses are
         aligned and verified as tracked scans are (`track`, from the coarse pose), and the most confident
         wins, bounded by its distinct rivals (`chosen`). When even the fittest retrieved pose seats fewer
-        than `verify_fitness` of the points, no slides are tried and only it is verified."""
+        than `verify_fitness` of the points, no slides are tried."""
         t0 = time.perf_counter()
         c, voxel = self.config, self.voxel_size
         hits = self.place_index().retrieve(scan, c.retrieve)
@@ -520,7 +520,7 @@ class MapLocalizer:
         rows = np.random.default_rng(self.registrar.config.seed).permutation(len(scan))[:c.screen_points]
         sample = scan[np.sort(rows)]
         aligned = [self._voxels.align(sample, hit_pose(h), max_iterations=COARSE_ITERATIONS) for h in hits]
-        # no retrieved place fits (a scan the map does not hold): only the fittest is verified
+        # no retrieved place fits (a scan the map does not hold): no look-alikes of it to look for
         unfit = bool(aligned) and max(share for _, share in aligned) < c.verify_fitness
         if aligned and c.slide_reach > 0 and not unfit:  # the fittest pose slid along the scan's main axis: a look-alike rival?
             fittest = max(aligned, key=lambda a: a[1])[0]
@@ -529,7 +529,7 @@ class MapLocalizer:
         coarse, fitness = [T for T, _ in aligned], [share for _, share in aligned]
         separation, kept = np.radians(self.registrar.config.pdsac.mode_separation), []
         for k in np.argsort(fitness, kind="stable")[::-1]:  # the fittest distinct poses
-            if len(kept) < (1 if unfit else c.candidates) and all(distinct_poses(coarse[k], coarse[j], separation,
+            if len(kept) < c.candidates and all(distinct_poses(coarse[k], coarse[j], separation,
                                                                c.rival_distance * voxel) for j in kept):
                 kept.append(int(k))
         t2 = time.perf_counter()

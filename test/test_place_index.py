@@ -186,7 +186,7 @@ def test_a_scan_of_another_place_is_not_confident(street: tuple[Scene, np.ndarra
         assert loc.localize(lidar_scan(other, T, rng, SENSOR).points).confidence < 0.5
 
 
-def test_a_scan_no_retrieved_place_fits_is_verified_once_and_not_confident(street: tuple[Scene, np.ndarray]) -> None:
+def test_a_scan_no_retrieved_place_fits_is_not_slid_and_not_confident(street: tuple[Scene, np.ndarray]) -> None:
     scene, map_xyz = street
     loc = MapLocalizer(map_xyz, config=LocalizationConfig(retrieve=8, map_voxel=0.2, verify_fitness=0.8))
     rng = np.random.default_rng(9)
@@ -195,7 +195,6 @@ def test_a_scan_no_retrieved_place_fits_is_verified_once_and_not_confident(stree
         T = sensor_pose(rng.uniform(-50, 50), rng.uniform(-1.0, 1.0), 1.8, rng.uniform(-np.pi, np.pi))
         result = loc.localize(lidar_scan(other, T, rng, SENSOR).points)
         assert result.confidence < 0.5
-        assert not any("rival pose" in u for u in result.unconstrained)  # one pose verified: no rival
     for _ in range(3):  # the map's own scans fit: placed as without the setting
         T = sensor_pose(rng.uniform(-50, 50), rng.uniform(-1.5, 1.5), 1.8, rng.uniform(-np.pi, np.pi))
         result = loc.localize(lidar_scan(scene, T, rng, SENSOR).points)
