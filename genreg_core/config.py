@@ -376,6 +376,18 @@ class LocalizationConfig:
     slide_reach: float = setting(14.0, "The fittest retrieved pose is also tried slid along the scan's main axis "
                                  "(a road, a corridor) by every two VGICP voxels up to this distance, m, both "
                                  "ways: a look-alike pose found there is its rival (0: off).", low=0.0, high=1000.0)
+    verify_fitness: float = setting(0.0, "With the place index, when no retrieved place's coarse (VGICP) alignment "
+                                    "seats this share of the scan's screened points, the fittest is not slid along "
+                                    "the scan's axis (slide_reach): a scan the map does not hold is rejected "
+                                    "sooner; its candidates are still verified (0: always slid).",
+                                    low=0.0, high=1.0)
+    gicp_voxel: float = setting(0.0, "With the place index, GICP (tracking, retrieved places) aligns against the "
+                                "map voxelised to this size, m, prepared once (its covariances); fitness, "
+                                "covariance and confidence are still worked out on the map (0: GICP on the map "
+                                "itself).", low=0.0, high=1e3)
+    map_threads: int = setting(0, "Threads that prepare the map for the place index's GICP and VGICP on load "
+                               "(its k-d trees and covariances: the same result on any number); 0: "
+                               "OMP_NUM_THREADS, else 1.", low=0, high=256)
     rival_distance: float = setting(4.0, "Two map poses whose positions differ by more than this many map voxels "
                                     "(or turned by more than PDSAC's mode separation) are distinct: the less "
                                     "probable bounds the other's confidence (a slide along a road or a "

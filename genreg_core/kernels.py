@@ -24,7 +24,7 @@ a 2 MB residual table). Here each problem is one pass of scalar code, with the f
   rotation-invariant point-pair features), `neighbour_max` (the edge convolution's max over neighbours);
   interact and generate (`model.genreg`): `first_index` (each point's best match, given its log weight),
   `neighbour_mix` (the generated point from the best match's neighbours).
-- Scores and output (`score`, `prepare`): `plane_normals` (target normals), `transform_rows` (the aligned
+- Scores and output (`score`, `prepare`): `plane_normals` (target normals; `plane_normals_about` about a known mean), `transform_rows` (the aligned
   full-resolution cloud); `copy_rows` (x, y, z out of a PointCloud2's records, `genreg_ros.pointcloud2`).
 
 Their callers use them where `usable` says so, and the torch forms elsewhere (training's gradients, other
@@ -464,15 +464,28 @@ def consensus(candidates: np.ndarray, src: np.ndarray, dst: np.ndarray, w: np.nd
 
 
 @njit(**_OPTIONS)
-def plane_normals(points: np.ndarray, neighbours: np.ndarray) -> np.ndarray:
-    """`score.plane_normals`'s formulas, one pass per set: (m, 3) unit normals (zero without spread) of the sets
-    points[neighbours] ((m, k) rows of (M, 3) float64 points), from moments about the cloud's mean."""
-    m, k = neighbours.shape
+def cloud_mean(points: np.ndarray) -> np.ndarray:
+    """(3,) mean of (M, 3) float64 points, summed in row order (zeros for no points): `plane_normals`'s centre."""
     centre = np.zeros(3)
     for i in range(points.shape[0]):
         for a in range(3):
             centre[a] += points[i, a]
     centre /= max(points.shape[0], 1)
+    return centre
+
+
+@njit(**_OPTIONS)
+def plane_normals(points: np.ndarray, neighbours: np.ndarray) -> np.ndarray:
+    """`score.plane_normals`'s formulas, one pass per set: (m, 3) unit normals (zero without spread) of the sets
+    points[neighbours] ((m, k) rows of (M, 3) float64 points), from moments about the cloud's mean."""
+    return plane_normals_about(points, neighbours, cloud_mean(points))
+
+
+@njit(**_OPTIONS)
+def plane_normals_about(points: np.ndarray, neighbours: np.ndarray, centre: np.ndarray) -> np.ndarray:
+    """`plane_normals` with the cloud's mean given (`cloud_mean`: a large cloud's, worked out once, not on
+    every call)."""
+    m, k = neighbours.shape
     out = np.zeros((m, 3))
     for r in range(m):
         sx = sy = sz = sxx = sxy = sxz = syy = syz = szz = 0.0
@@ -593,7 +606,7 @@ def compile_all() -> None:
     rows = np.ascontiguousarray(cloud.transpose(0, 2, 1))
     truncated_scores(hypotheses, rows, rows, np.ones((1, 32), dtype=f32), 0.1)
     consensus(hypotheses, cloud, cloud, np.ones((1, 32), dtype=f32), 0.1, np.array([0.1]))
-    plane_normals(cloud[0].astype(f64), graph[0])
+    plane_normals(cloud[0].astype(f64), graph[0])  # with cloud_mean and plane_normals_about
     weights = np.ones((1, 32))
     weighted_sets(np.cumsum(weights, axis=1), weights, rng.random((3, 1, 4)))
 

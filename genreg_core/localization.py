@@ -37,7 +37,9 @@ results are verified for one scan, a distinct pose among them is the chosen one'
 distinct poses cannot both be right, so the confidence is at most 1 - the rival's; the rival is named
 among the result's `unconstrained` motions ("translation along (x, y, z) to a rival pose d m away": a
 slide along a road or a corridor whose structure repeats) and widens the covariance. The map may be
-voxelised on load (`map_voxel`). With the index, tracking aligns against the whole map too (no local maps
+voxelised on load (`map_voxel`; with `cache_dir`, once: kept there), and GICP's target may be a coarser
+voxelisation of it (`gicp_voxel`: its covariances are most of a large map's load; the scores still query
+the map). With the index, tracking aligns against the whole map too (no local maps
 to rebuild as the robot moves), and an unsure track, or one that moved beyond GICP's reach from its guess
 (`track_distance`: the guess was stale), is checked by the index's search rather than GenReg.
 
@@ -82,7 +84,7 @@ from genreg_core.place_index import VERSION as INDEX_VERSION
 from genreg_core.place_index import IndexGeometry, PlaceIndex, hit_pose
 from genreg_core.prepare import check_transform, robust_extent, validate_cloud
 from genreg_core.preprocess import voxel_downsample
-from genreg_core.refine import VoxelTarget, gicp_target
+from genreg_core.refine import GICPTarget, VoxelTarget, gicp_target
 from genreg_core.registration import COARSE_ITERATIONS, Registrar, distinct_poses
 from genreg_core.result import (
     TRACKING_CALIBRATION,
@@ -104,11 +106,14 @@ EXTENT_SAMPLES = 200_000  # the map's robust extent from this many of its points
 
 
 def median_spacing(points: np.ndarray, samples: int = SPACING_SAMPLES, seed: int = 0,
-                   tree: cKDTree | None = None) -> float:
+                   tree: cKDTree | None = None, index: TargetIndex | None = None) -> float:
     """The median distance from a point to its nearest other point, over up to `samples` points (`tree`:
-    the points' k-d tree, if built)."""
-    tree = tree if tree is not None else cKDTree(points)
+    the points' scipy k-d tree, or `index`: their `TargetIndex`, if built)."""
     rows = np.random.default_rng(seed).choice(len(points), size=min(samples, len(points)), replace=False)
+    if index is not None and tree is None:
+        _, squared = index.tree.batch_knn_search(points[rows], 2, num_threads=index.threads)
+        return float(np.median(np.sqrt(squared[:, 1])))
+    tree = tree if tree is not None else cKDTree(points)
     distances, _ = tree.query(points[rows], k=2)
     return float(np.median(distances[:, 1]))
 
@@ -154,24 +159,62 @@ def write_places(path: Path, places: list[np.ndarray]) -> None:
         warnings.warn(f"map places not cached in {path.parent}: {exc.strerror or exc}", stacklevel=3)
 
 
-def read_index(path: Path, geometry: IndexGeometry) -> PlaceIndex | None:
-    """A place index written by `write_index`, or None when the file cannot be read (it is then built again)."""
+def read_points(path: Path) -> np.ndarray | None:
+    """(M, 3) float64 points written by `write_points`, or None when the file cannot be read (they are then
+    worked out again)."""
     try:
-        with np.load(path) as cached:
-            return PlaceIndex(geometry, cached["centres"], cached["descriptors"])
-    except (OSError, ValueError, KeyError, zipfile.BadZipFile):
+        points = np.load(path, allow_pickle=False)
+    except (OSError, ValueError):
         return None
+    return points if points.dtype == np.float64 and points.ndim == 2 and points.shape[1] == 3 else None
 
 
-def write_index(path: Path, index: PlaceIndex) -> None:
-    """A place index as one file, whole or absent (written aside, then renamed); a folder that cannot be
-    written leaves it in memory only, with a warning."""
+def write_points(path: Path, points: np.ndarray) -> None:
+    """Points as one .npy file, whole or absent (written aside, then renamed); a folder that cannot be
+    written leaves them in memory only, with a warning."""
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
-        np.savez(path.with_suffix(".tmp.npz"), centres=index.centres, descriptors=index.descriptors)
-        os.replace(path.with_suffix(".tmp.npz"), path)
+        np.save(path.with_suffix(".tmp.npy"), points)
+        os.replace(path.with_suffix(".tmp.npy"), path)
     except OSError as exc:
-        warnings.warn(f"place index not cached in {path.parent}: {exc.strerror or exc}", stacklevel=3)
+        warnings.warn(f"map points not cached in {path.parent}: {exc.strerror or exc}", stacklevel=3)
+
+
+def content_key(points: np.ndarray) -> str:
+    """A short hash of an array's values, dtype and shape (cache file names)."""
+    digest = hashlib.sha1(np.ascontiguousarray(points).data)
+    digest.update(f"{points.dtype.str}{points.shape}".encode())
+    return digest.hexdigest()[:16]
+
+
+INDEX_PARTS = ("centres", "descriptors")  # a cached place index's arrays, one .npy file each
+
+
+def read_index(stem: Path, geometry: IndexGeometry) -> PlaceIndex | None:
+    """A place index written by `write_index` (its files `stem`.<part>.npy), or None when one cannot be read
+    (it is then built again)."""
+    try:
+        parts = {name: np.load(stem.with_name(f"{stem.name}.{name}.npy"), allow_pickle=False) for name in INDEX_PARTS}
+    except (OSError, ValueError):
+        return None
+    if len(parts["centres"]) != len(parts["descriptors"]):
+        return None
+    return PlaceIndex(geometry, parts["centres"], parts["descriptors"])
+
+
+def write_index(stem: Path, index: PlaceIndex) -> None:
+    """A place index as one .npy file per array (plain files read in one pass, unlike an .npz's zip members:
+    a second on a large map; the descriptors' spectra are worked out again: faster than read from disk), each
+    whole or absent (written aside, then
+    renamed); a folder that cannot be written leaves it in memory only, with a warning."""
+    try:
+        stem.parent.mkdir(parents=True, exist_ok=True)
+        for name in INDEX_PARTS:
+            path = stem.with_name(f"{stem.name}.{name}.npy")
+            np.save(path.with_suffix(".tmp.npy"), getattr(index, name))
+            os.replace(path.with_suffix(".tmp.npy"), path)
+    except OSError as exc:
+        warnings.warn(f"place index not cached in {stem.parent}: {exc.strerror or exc}", stacklevel=3)
 
 
 @dataclass(frozen=True)
@@ -200,8 +243,9 @@ class MapLocalizer:
         """`map_xyz`: (M, 3) map points (metres, or any units the scans share); `registrar`: the loaded
         Registrar to localise with (None: the scene model `SCENE_MODEL` with the scene profile
         `SCENE_REGISTRATION`); `config`: the localisation settings (their limits are checked when it is
-        built); `cache_dir`: where the candidate places are kept between runs (files keyed by the map's
-        content hash and the settings; None: in memory only)."""
+        built); `cache_dir`: where the candidate places, the place index and the voxelised map (`map_voxel`,
+        `gicp_voxel`) are kept between runs (files keyed by the map's content hash and the settings; None: in
+        memory only)."""
         if not isinstance(config, LocalizationConfig):
             raise ConfigError(f"config must be a LocalizationConfig, got {type(config).__name__}")
         self.registrar = registrar or Registrar.from_checkpoint(SCENE_MODEL, SCENE_REGISTRATION)
@@ -210,13 +254,23 @@ class MapLocalizer:
             raise ConfigError(f"localization.place_points ({config.place_points}) must be at least the "
                               f"registration's min_points ({min_points})")
         finite, _ = validate_cloud(map_xyz, "map", min_points)
-        if config.map_voxel > 0:
-            finite = voxel_downsample(np.asarray(finite, dtype=np.float64), config.map_voxel)
         self.config = config
+        self.cache_dir = None if cache_dir is None else Path(cache_dir)
+        if config.map_voxel > 0:
+            finite = self.voxelised(finite, config.map_voxel, "map")
         self.map = np.ascontiguousarray(finite, dtype=np.float64)
-        self.tree = kd_tree(self.map)
-        self.voxel_size = float(config.voxel_size) or median_spacing(self.map, tree=self.tree)
         self.threads = config.threads or int(os.environ.get("OMP_NUM_THREADS") or 1)
+        self.map_threads = config.map_threads or int(os.environ.get("OMP_NUM_THREADS") or 1)
+        self._tree: cKDTree | None = None  # the map's scipy k-d tree (places, crops, local maps), on first use
+        # with the place index, the whole map's TargetIndex (small_gicp's k-d tree: GICP's, the scores') is
+        # the only tree it needs; the map's resolution is measured on it
+        self._map_index = TargetIndex(self.map, self.threads, build_threads=self.map_threads) \
+            if config.retrieve else None
+        self.voxel_size = float(config.voxel_size) or (
+            median_spacing(self.map, tree=self.tree) if self._map_index is None
+            else median_spacing(self.map, index=self._map_index))
+        if self._map_index is not None:
+            self._map_index.spacing = self.voxel_size
         self._local: LocalMap | None = None
         self._whole: LocalMap | None = None  # the whole map prepared for GICP (retrieved places' alignment)
         self._voxels: VoxelTarget | None = None  # ... and for VGICP (their coarse alignment)
@@ -224,7 +278,6 @@ class MapLocalizer:
         rng = np.random.default_rng(0)
         sample = self.map if len(self.map) <= EXTENT_SAMPLES else self.map[rng.choice(len(self.map), EXTENT_SAMPLES)]
         _, self.extent = robust_extent(sample)
-        self.cache_dir = None if cache_dir is None else Path(cache_dir)
         self._key = hashlib.sha1(self.map.data).hexdigest()[:16] if cache_dir is not None else ""
         self._places: dict[float, list[np.ndarray]] = {}  # scan radius -> the places' map rows
         # candidates are screened without refinement (ranking only), then verified with the full profile
@@ -233,6 +286,26 @@ class MapLocalizer:
                                       pdsac=replace(cfg.pdsac, modes=1))
         self._screen_model = resized(self.registrar.model, config.screen_model_points) or self.registrar.model
         self._screener = Registrar(self._screen_model, self._screen_config, self.registrar.calibration)
+
+    def voxelised(self, points: np.ndarray, size: float, kind: str) -> np.ndarray:
+        """`voxel_downsample` of the points (as float64) to `size`; with `cache_dir`, read from and kept in
+        it by the points' content hash and the size (a large map's voxels once: seconds on millions of
+        points). `kind` names the file ("map": the map on load, "gicp": GICP's coarser map)."""
+        path = None if self.cache_dir is None else self.cache_dir / f"{kind}-{content_key(points)}-v{size:.6g}.npy"
+        cached = read_points(path) if path is not None and path.is_file() else None
+        if cached is not None:
+            return cached
+        voxels = voxel_downsample(np.asarray(points, dtype=np.float64), size)
+        if path is not None:
+            write_points(path, voxels)
+        return voxels
+
+    @property
+    def tree(self) -> cKDTree:
+        """The map's scipy k-d tree (`kd_tree`), built on first use (the place index's path needs none)."""
+        if self._tree is None:
+            self._tree = kd_tree(self.map)
+        return self._tree
 
     def places(self, radius: float) -> list[np.ndarray]:
         """The candidate places for scans of this radius, as map row indices: the map points within
@@ -296,11 +369,13 @@ class MapLocalizer:
         if len(scan) < reg.config.min_points:
             raise TooFewPointsError(f"source has {len(scan)} points after voxelising to the map's "
                                     f"{self.voxel_size:.3g}; registration needs at least {reg.config.min_points}")
-        centroid, radius, extent = self.scan_geometry(scan)
         indexed, c = self.config.retrieve > 0, self.config
+        # with the index every alignment is against the whole map: no local map or places, so the scan's
+        # geometry (centroid, radius, extent) is not needed
+        geometry = None if indexed else self.scan_geometry(scan)
         if guess is not None:  # tracking runs with the calibration's tracking model only
-            tracked = self.track(scan, guess, (centroid, radius), self.whole_map() if indexed else None) \
-                if self.tracking_calibrated else None
+            tracked = self.track(scan, guess, None if geometry is None else geometry[:2],
+                                 self.whole_map() if indexed else None) if self.tracking_calibrated else None
             # with the index, a track that moved beyond GICP's reach from its guess (a stale guess, which may
             # have slid onto a look-alike place along a repeating street) is checked like an unsure one
             far = indexed and tracked is not None and distinct_poses(
@@ -309,12 +384,15 @@ class MapLocalizer:
             if tracked is not None and tracked.confidence >= c.track_below and not far:
                 return tracked
             if indexed:  # an unsure track: the place index's answer, bounded by the track's if they differ
-                return self.chosen([self.retrieved(scan, (centroid, radius)), *([tracked] if tracked else [])])
+                return self.chosen([self.retrieved(scan), *([tracked] if tracked else [])])
+            assert geometry is not None
+            centroid, radius, _ = geometry
             searched = self.judged(self.refined(scan, guess, apply_transform(guess, centroid[None])[0], radius), scan)
             return searched if tracked is None else max(tracked, searched, key=lambda r: r.confidence)
         if indexed:
-            return self.retrieved(scan, (centroid, radius))
-        return self.chosen(self.searched(scan, (centroid, radius, extent)))
+            return self.retrieved(scan)
+        assert geometry is not None
+        return self.chosen(self.searched(scan, geometry))
 
     def searched(self, scan: np.ndarray, geometry: tuple[np.ndarray, float, float]) -> list[RegistrationResult]:
         """The global results of a voxelised scan without a guess or an index (`geometry`: its `scan_geometry`),
@@ -384,14 +462,15 @@ class MapLocalizer:
         """The voxelised scan aligned by GICP from `guess` (T_map_scan) against the local map around it
         (`local`), verified and built into a result as a registration is (`result.build_result`: inlier ratio
         NaN, taken as 1: no network pass; no generated clouds; `start` "initial_guess"). `geometry`: the
-        scan's (centroid, radius) from `scan_geometry`, if known. Its confidence is the calibration's tracking
+        scan's (centroid, radius) from `scan_geometry`, if known (used only to find the local map). Its confidence is the calibration's tracking
         model's (`tracking_confidence`; without one, uncalibrated as `genreg_core.result` says). None when the
         map holds too few points around the guess. `local`: the map to align against (default: `local`'s)."""
         t0 = time.perf_counter()
-        centroid, radius = geometry or self.scan_geometry(scan)[:2]
-        local = local or self.local(apply_transform(guess, centroid[None])[0], radius)
         if local is None:
-            return None
+            centroid, radius = geometry or self.scan_geometry(scan)[:2]
+            local = self.local(apply_transform(guess, centroid[None])[0], radius)
+            if local is None:
+                return None
         c = self.config
         rows = np.random.default_rng(self.registrar.config.seed).permutation(len(scan))[:c.track_points]
         sample = scan[np.sort(rows)]
@@ -428,8 +507,8 @@ class MapLocalizer:
             geometry = IndexGeometry(spacing=c.index_spacing, radius=c.index_radius, band=c.index_band)
             path = None if self.cache_dir is None else self.cache_dir / (
                 f"index-v{INDEX_VERSION}-{self._key}-s{c.index_spacing:.6g}-r{c.index_radius:.6g}-b{c.index_band:.6g}"
-                f"-m{c.map_voxel:.6g}.npz")
-            self._index = read_index(path, geometry) if path is not None and path.is_file() else None
+                f"-m{c.map_voxel:.6g}")
+            self._index = read_index(path, geometry) if path is not None else None
             if self._index is None:
                 self._index = PlaceIndex.build(self.map, geometry)
                 if path is not None:
@@ -438,14 +517,23 @@ class MapLocalizer:
 
     def whole_map(self) -> LocalMap:
         """The whole map indexed and prepared for GICP and VGICP (voxels of `screen_voxels` map voxels), once:
-        what retrieved places are aligned against."""
+        what retrieved places are aligned against. GICP's target is the map voxelised to `gicp_voxel` (when
+        set: its covariances are most of a large map's load), the VGICP voxels are merged from its points;
+        the scores (`track`) query the map itself. Built on `map_threads`."""
         if self._whole is None:
-            index = TargetIndex(self.map, self.threads, spacing=self.voxel_size)
+            index = self._map_index or TargetIndex(self.map, self.threads, spacing=self.voxel_size,
+                                                   build_threads=self.map_threads)
+            if self.config.gicp_voxel > 0:
+                coarse = self.voxelised(self.map, self.config.gicp_voxel, "gicp")
+                index.gicp = GICPTarget(coarse, threads=self.threads, build_threads=self.map_threads)
+            else:
+                index.gicp = GICPTarget(self.map, tree=index.tree, threads=self.threads,
+                                        build_threads=self.map_threads)
             self._voxels = VoxelTarget(gicp_target(index), self.config.screen_voxels * self.voxel_size)
             self._whole = LocalMap(self.map.mean(axis=0), float("inf"), True, index)
         return self._whole
 
-    def retrieved(self, scan: np.ndarray, geometry: tuple[np.ndarray, float]) -> RegistrationResult:
+    def retrieved(self, scan: np.ndarray) -> RegistrationResult:
         """A scan without a guess placed by the place index: each of the `retrieve` places and headings it
         retrieves is aligned coarsely by VGICP against the whole map (`screen_points` of the scan's points,
         `COARSE_ITERATIONS` iterations, voxels of `screen_voxels`) and scored by the share of the points it
@@ -453,7 +541,8 @@ class MapLocalizer:
         fittest of them slid along the scan's main axis (`slides`: look-alike places along a road or a
         corridor); the `candidates` best distinct poses are
         aligned and verified as tracked scans are (`track`, from the coarse pose), and the most confident
-        wins, bounded by its distinct rivals (`chosen`)."""
+        wins, bounded by its distinct rivals (`chosen`). When even the fittest retrieved pose seats fewer
+        than `verify_fitness` of the points, no slides are tried."""
         t0 = time.perf_counter()
         c, voxel = self.config, self.voxel_size
         hits = self.place_index().retrieve(scan, c.retrieve)
@@ -463,7 +552,9 @@ class MapLocalizer:
         rows = np.random.default_rng(self.registrar.config.seed).permutation(len(scan))[:c.screen_points]
         sample = scan[np.sort(rows)]
         aligned = [self._voxels.align(sample, hit_pose(h), max_iterations=COARSE_ITERATIONS) for h in hits]
-        if aligned and c.slide_reach > 0:  # the fittest pose slid along the scan's main axis: a look-alike rival?
+        # no retrieved place fits (a scan the map does not hold): no look-alikes of it to look for
+        unfit = bool(aligned) and max(share for _, share in aligned) < c.verify_fitness
+        if aligned and c.slide_reach > 0 and not unfit:  # the fittest pose slid along the scan's main axis: a look-alike rival?
             fittest = max(aligned, key=lambda a: a[1])[0]
             aligned += [self._voxels.align(sample, T, max_iterations=COARSE_ITERATIONS)
                         for T in self.slides(sample, fittest)]
@@ -474,9 +565,9 @@ class MapLocalizer:
                                                                c.rival_distance * voxel) for j in kept):
                 kept.append(int(k))
         t2 = time.perf_counter()
-        results = [r for k in kept if (r := self.track(scan, coarse[k], geometry, whole)) is not None]
+        results = [r for k in kept if (r := self.track(scan, coarse[k], local=whole)) is not None]
         if not results:  # nothing retrieved near enough to the map to align: the whole map from the identity
-            results = [self.track(scan, np.eye(4), geometry, whole) or self.registrar.register(scan, self.map)]
+            results = [self.track(scan, np.eye(4), local=whole) or self.registrar.register(scan, self.map)]
         best = self.chosen(results)
         best.timings = {"retrieve": t1 - t0, "screen": t2 - t1, "refine": time.perf_counter() - t2,
                         "total": time.perf_counter() - t0}

@@ -113,13 +113,16 @@ class GICPTarget:
     the same result on any number of threads)."""
 
     def __init__(self, points: np.ndarray, *, tree: small_gicp.KdTree | None = None, neighbours: int = 10,
-                 threads: int = 1) -> None:
-        """`tree`: a small_gicp k-d tree of exactly these rows (`TargetIndex.tree`) instead of building one."""
+                 threads: int = 1, build_threads: int | None = None) -> None:
+        """`tree`: a small_gicp k-d tree of exactly these rows (`TargetIndex.tree`) instead of building one;
+        `build_threads`: the threads that build the target's tree and covariances (default `threads`: a map
+        prepared once may take more than each source's alignment)."""
+        build = build_threads or threads
         self.cloud = small_gicp.PointCloud(np.ascontiguousarray(points, dtype=np.float64))
-        self.tree = tree or small_gicp.KdTree(self.cloud, num_threads=threads)
+        self.tree = tree or small_gicp.KdTree(self.cloud, num_threads=build)
         self.neighbours = neighbours
         self.threads = threads
-        small_gicp.estimate_covariances(self.cloud, self.tree, num_neighbors=neighbours, num_threads=threads)
+        small_gicp.estimate_covariances(self.cloud, self.tree, num_neighbors=neighbours, num_threads=build)
 
     def align(self, source: np.ndarray, init: np.ndarray | None = None, *, max_distance: float, max_iterations: int,
               threads: int = 1, fine: tuple[float, int] | None = None) -> np.ndarray:

@@ -57,14 +57,17 @@ class TargetIndex:
     neighbours, as Open3D's KNN normals). Queries run on `threads` threads (default: OMP_NUM_THREADS,
     else 1)."""
 
-    def __init__(self, points: np.ndarray, threads: int | None = None, spacing: float | None = None) -> None:
-        """`spacing`: the point spacing when known (a voxelised map's), else measured on first use."""
+    def __init__(self, points: np.ndarray, threads: int | None = None, spacing: float | None = None,
+                 build_threads: int = 1) -> None:
+        """`spacing`: the point spacing when known (a voxelised map's), else measured on first use;
+        `build_threads`: the threads that build the k-d tree (a map's, once)."""
         self.points = np.ascontiguousarray(points, dtype=np.float64)
         self.threads = threads or int(os.environ.get("OMP_NUM_THREADS") or 1)
-        self.tree = small_gicp.KdTree(self.points, num_threads=1)
+        self.tree = small_gicp.KdTree(self.points, num_threads=build_threads)
         self._spacing: float | None = spacing
-        self._normals = np.zeros_like(self.points)
+        self._normals = np.zeros(self.points.shape)  # calloc'd: pages touched only where normals are asked
         self._has_normal = np.zeros(len(self.points), dtype=bool)
+        self._mean: np.ndarray | None = None  # the points' mean, the normals' centre (`plane_normals`)
         self._queries: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []  # the last few `nearest` calls
         self.gicp: object | None = None  # the points prepared for GICP, on first use (`refine.gicp_target`)
 
@@ -94,6 +97,11 @@ class TargetIndex:
             self._spacing = float(np.median(np.sqrt(squared[:, 1])))
         return self._spacing
 
+    @spacing.setter
+    def spacing(self, value: float) -> None:
+        """The point spacing, measured elsewhere (a map's, on a sample of its points)."""
+        self._spacing = float(value)
+
     def normals(self, rows: np.ndarray) -> np.ndarray:
         """Unit normals (unoriented: only their line matters here) at these target rows: the PCA normal of
         each row's `NORMAL_NEIGHBOURS` nearest target points (as Open3D's KNN normals), computed once per
@@ -102,7 +110,9 @@ class TargetIndex:
         if len(missing):
             k = min(NORMAL_NEIGHBOURS, len(self.points))
             neighbours, _ = self.tree.batch_knn_search(self.points[missing], k, num_threads=self.threads)
-            self._normals[missing] = plane_normals(self.points, neighbours.astype(np.int64))
+            if self._mean is None:  # a map's mean once, not on every call (3 ms on a 3 M-point map)
+                self._mean = kernels.cloud_mean(self.points)
+            self._normals[missing] = plane_normals(self.points, neighbours.astype(np.int64), self._mean)
             self._has_normal[missing] = True
         return self._normals[rows]
 
@@ -113,15 +123,19 @@ def sorted_distinct(values: np.ndarray) -> np.ndarray:
     return ordered[np.concatenate([[True], ordered[1:] != ordered[:-1]])] if len(ordered) else ordered
 
 
-def plane_normals(points: np.ndarray, neighbours: np.ndarray) -> np.ndarray:
+def plane_normals(points: np.ndarray, neighbours: np.ndarray, mean: np.ndarray | None = None) -> np.ndarray:
     """(m, 3) unit normals of the point sets `points[neighbours]` ((m, k) rows of an (M, 3) cloud): each
     set's least-variance direction (zero for a set with no spread), the eigenvector of the smallest
     eigenvalue of its covariance. The covariances come from moments about the cloud's mean (as Open3D's
     cumulants); the eigenvector in closed form: the eigenvalue by the trigonometric formula of a
     symmetric 3x3 matrix, the vector as the longest cross product of two rows of (C - lambda I). Matches
-    LAPACK / Open3D to ~1e-13 on planar neighbourhoods. Compiled (`kernels.plane_normals`), one pass per set."""
-    return kernels.plane_normals(np.ascontiguousarray(points, dtype=np.float64),
-                                 np.ascontiguousarray(neighbours, dtype=np.int64))
+    LAPACK / Open3D to ~1e-13 on planar neighbourhoods. Compiled (`kernels.plane_normals`), one pass per set.
+    `mean`: the cloud's mean if known (`kernels.cloud_mean` of these points: the same normals)."""
+    points = np.ascontiguousarray(points, dtype=np.float64)
+    neighbours = np.ascontiguousarray(neighbours, dtype=np.int64)
+    if mean is None:
+        return kernels.plane_normals(points, neighbours)
+    return kernels.plane_normals_about(points, neighbours, np.ascontiguousarray(mean, dtype=np.float64))
 
 
 def point_spacing(points: np.ndarray | TargetIndex) -> float:

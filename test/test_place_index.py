@@ -132,6 +132,31 @@ def test_global_localisation_with_the_index_places_held_out_scans_and_never_conf
     # the index was cached with the map: a second localizer reads the same descriptors
     again = MapLocalizer(map_xyz, config=config, cache_dir=tmp_path)
     np.testing.assert_array_equal(again.place_index().descriptors, loc.place_index().descriptors)
+    # ...with their spectra, as worked out afresh from the descriptors
+    np.testing.assert_array_equal(again.place_index().spectra, spectra(loc.place_index().descriptors))
+
+
+def test_tracking_on_a_coarser_gicp_map_finds_the_sensor_pose_and_the_voxelised_map_is_cached(
+        street: tuple[Scene, np.ndarray], tmp_path: object) -> None:
+    scene, map_xyz = street
+    config = LocalizationConfig(retrieve=8, map_voxel=0.2, gicp_voxel=0.35)
+    loc = MapLocalizer(map_xyz, config=config, cache_dir=tmp_path)
+    np.testing.assert_array_equal(loc.map, voxel_downsample(map_xyz.astype(np.float64), 0.2))
+    coarse = loc.whole_map().index.gicp.cloud.points()[:, :3]
+    np.testing.assert_array_equal(coarse, voxel_downsample(loc.map, 0.35))  # GICP's target
+    assert loc.whole_map().index.points is loc.map  # the scores query the map itself
+    again = MapLocalizer(map_xyz, config=config, cache_dir=tmp_path)  # both voxelisations read from the cache
+    assert sorted(f.name.split("-")[0] for f in tmp_path.glob("*.npy") if not f.name.startswith("index")) == \
+        ["gicp", "map"]
+    np.testing.assert_array_equal(again.map, loc.map)
+    np.testing.assert_array_equal(again.whole_map().index.gicp.cloud.points()[:, :3], coarse)
+    rng = np.random.default_rng(8)
+    for _ in range(3):
+        T = sensor_pose(rng.uniform(-50, 50), rng.uniform(-1.0, 1.0), 1.8, rng.uniform(-np.pi, np.pi))
+        off = sensor_pose(0.3, -0.2, 0.05, np.radians(3.0))  # the guess: 0.36 m and 3 deg from the truth
+        result = again.localize(lidar_scan(scene, T, rng, SENSOR).points, initial_guess=T @ off)
+        re, te = transform_errors(result.transformation, T)
+        assert re < 0.5 and te < 0.05 and result.confidence >= 0.5, (re, te, result.confidence)
 
 
 def test_a_street_that_repeats_is_never_confident_and_the_slide_along_it_is_named() -> None:
@@ -159,3 +184,19 @@ def test_a_scan_of_another_place_is_not_confident(street: tuple[Scene, np.ndarra
     for _ in range(3):
         T = sensor_pose(rng.uniform(-50, 50), rng.uniform(-1.0, 1.0), 1.8, rng.uniform(-np.pi, np.pi))
         assert loc.localize(lidar_scan(other, T, rng, SENSOR).points).confidence < 0.5
+
+
+def test_a_scan_no_retrieved_place_fits_is_not_slid_and_not_confident(street: tuple[Scene, np.ndarray]) -> None:
+    scene, map_xyz = street
+    loc = MapLocalizer(map_xyz, config=LocalizationConfig(retrieve=8, map_voxel=0.2, verify_fitness=0.8))
+    rng = np.random.default_rng(9)
+    other = street_scene(11, length=160.0)
+    for _ in range(2):
+        T = sensor_pose(rng.uniform(-50, 50), rng.uniform(-1.0, 1.0), 1.8, rng.uniform(-np.pi, np.pi))
+        result = loc.localize(lidar_scan(other, T, rng, SENSOR).points)
+        assert result.confidence < 0.5
+    for _ in range(3):  # the map's own scans fit: placed as without the setting
+        T = sensor_pose(rng.uniform(-50, 50), rng.uniform(-1.5, 1.5), 1.8, rng.uniform(-np.pi, np.pi))
+        result = loc.localize(lidar_scan(scene, T, rng, SENSOR).points)
+        re, te = transform_errors(result.transformation, T)
+        assert re < PLACED_RE_DEG and te < PLACED_TE_M and result.confidence >= 0.5, (re, te, result.confidence)

@@ -12,6 +12,7 @@ import pytest
 from scipy.spatial import cKDTree
 from test_model import SMALL
 
+from genreg_core import kernels
 from genreg_core.geometry import apply_transform, random_transform
 from genreg_core.metrics import transform_errors
 from genreg_core.model import GenRegNet
@@ -151,6 +152,9 @@ def test_normals_equal_the_lapack_smallest_eigenvector():
     truth = np.linalg.eigh(np.einsum("mki,mkj->mij", centred, centred))[1][:, :, 0]
     np.testing.assert_allclose(np.abs((normals * truth).sum(axis=1)), 1.0, atol=1e-9)
     assert np.allclose(plane_normals(np.zeros((5, 3)), np.zeros((2, 3), dtype=int)), 0.0)  # no spread: zero
+    # about the cloud's mean given (a TargetIndex works it out once): the same normals, bit for bit
+    np.testing.assert_array_equal(plane_normals(cloud, neighbours, kernels.cloud_mean(cloud)), normals)
+    np.testing.assert_allclose(kernels.cloud_mean(cloud), cloud.mean(axis=0), rtol=1e-12)
 
 
 def _reference_covariance(moved, target, origin, max_distance, inflation, floor):
