@@ -381,10 +381,6 @@ class LocalizationConfig:
                                     "the scan's axis (slide_reach): a scan the map does not hold is rejected "
                                     "sooner; its candidates are still verified (0: always slid).",
                                     low=0.0, high=1.0)
-    gicp_voxel: float = setting(0.0, "With the place index, GICP (tracking, retrieved places) aligns against the "
-                                "map voxelised to this size, m, prepared once (its covariances); fitness, "
-                                "covariance and confidence are still worked out on the map (0: GICP on the map "
-                                "itself).", low=0.0, high=1e3)
     map_threads: int = setting(0, "Threads that prepare the map for the place index's GICP and VGICP on load "
                                "(its k-d trees and covariances: the same result on any number); 0: "
                                "OMP_NUM_THREADS, else 1.", low=0, high=256)

@@ -37,9 +37,7 @@ results are verified for one scan, a distinct pose among them is the chosen one'
 distinct poses cannot both be right, so the confidence is at most 1 - the rival's; the rival is named
 among the result's `unconstrained` motions ("translation along (x, y, z) to a rival pose d m away": a
 slide along a road or a corridor whose structure repeats) and widens the covariance. The map may be
-voxelised on load (`map_voxel`; with `cache_dir`, once: kept there), and GICP's target may be a coarser
-voxelisation of it (`gicp_voxel`: its covariances are most of a large map's load; the scores still query
-the map). With the index, tracking aligns against the whole map too (no local maps
+voxelised on load (`map_voxel`; with `cache_dir`, once: kept there). With the index, tracking aligns against the whole map too (no local maps
 to rebuild as the robot moves), and an unsure track, or one that moved beyond GICP's reach from its guess
 (`track_distance`: the guess was stale), is checked by the index's search rather than GenReg.
 
@@ -243,8 +241,8 @@ class MapLocalizer:
         """`map_xyz`: (M, 3) map points (metres, or any units the scans share); `registrar`: the loaded
         Registrar to localise with (None: the scene model `SCENE_MODEL` with the scene profile
         `SCENE_REGISTRATION`); `config`: the localisation settings (their limits are checked when it is
-        built); `cache_dir`: where the candidate places, the place index and the voxelised map (`map_voxel`,
-        `gicp_voxel`) are kept between runs (files keyed by the map's content hash and the settings; None: in
+        built); `cache_dir`: where the candidate places, the place index and the voxelised map (`map_voxel`)
+        are kept between runs (files keyed by the map's content hash and the settings; None: in
         memory only)."""
         if not isinstance(config, LocalizationConfig):
             raise ConfigError(f"config must be a LocalizationConfig, got {type(config).__name__}")
@@ -517,18 +515,11 @@ class MapLocalizer:
 
     def whole_map(self) -> LocalMap:
         """The whole map indexed and prepared for GICP and VGICP (voxels of `screen_voxels` map voxels), once:
-        what retrieved places are aligned against. GICP's target is the map voxelised to `gicp_voxel` (when
-        set: its covariances are most of a large map's load), the VGICP voxels are merged from its points;
-        the scores (`track`) query the map itself. Built on `map_threads`."""
+        what retrieved places are aligned against. Built on `map_threads`."""
         if self._whole is None:
             index = self._map_index or TargetIndex(self.map, self.threads, spacing=self.voxel_size,
                                                    build_threads=self.map_threads)
-            if self.config.gicp_voxel > 0:
-                coarse = self.voxelised(self.map, self.config.gicp_voxel, "gicp")
-                index.gicp = GICPTarget(coarse, threads=self.threads, build_threads=self.map_threads)
-            else:
-                index.gicp = GICPTarget(self.map, tree=index.tree, threads=self.threads,
-                                        build_threads=self.map_threads)
+            index.gicp = GICPTarget(self.map, tree=index.tree, threads=self.threads, build_threads=self.map_threads)
             self._voxels = VoxelTarget(gicp_target(index), self.config.screen_voxels * self.voxel_size)
             self._whole = LocalMap(self.map.mean(axis=0), float("inf"), True, index)
         return self._whole

@@ -320,9 +320,8 @@ MAP_OVERRIDES: dict[str, Any] = {**SCENE_OVERRIDES, "workers": 1, "map.enabled":
 # one thread for a scan's alignments (small_gicp on 1,500 points: 25 ms per candidate on one thread against
 # about 100 ms on two, on a 3.3 M-point training map under load); no slides for a scan whose fittest retrieved
 # pose seats under 80 % of its points (verify_fitness: on the training world the fittest of every road scan
-# seated 0.906 or more, of every off-map scan 0.735 or less). GICP on the map itself (gicp_voxel 0): a 0.35 m
-# GICP map, chosen on the training world (TE and road scans as on the map), made two indoor scans of the
-# held-out world confidently wrong (0.75, 0.90; 0.35 and 0.34 on the map itself)
+# seated 0.906 or more, of every off-map scan 0.735 or less). GICP on the map itself (MODEL_CARD: a coarser
+# GICP map, tried for its load time, made two held-out indoor scans confidently wrong)
 LIDAR_MAP_OVERRIDES: dict[str, Any] = {**MAP_OVERRIDES, "map.localization.retrieve": 8,
                                        "map.localization.map_voxel": 0.2, "map.localization.threads": 1,
                                        "map.localization.verify_fitness": 0.8}

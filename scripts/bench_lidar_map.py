@@ -489,8 +489,7 @@ class Bench:
         self.report.table(["run", "np.load s", "model load s", "MapLocalizer() s", "place index s", "GICP map s",
                            "total s (model excluded)", "peak RSS MB", "points after voxel", "places"], rows)
         c = lidar_config()
-        self.report.add(f"cache_dir holds the place index, the map voxelised to "
-                        f"{c.map_voxel:g} m and GICP's target voxelised to {c.gicp_voxel:g} m (gicp_voxel; 0: the map); "
+        self.report.add(f"cache_dir holds the place index and the map voxelised to {c.map_voxel:g} m; "
                         "the k-d trees and GICP's covariances are built on every load (on map_threads threads). "
                         f"Load average {load_text()}.", "")
 

@@ -136,20 +136,16 @@ def test_global_localisation_with_the_index_places_held_out_scans_and_never_conf
     np.testing.assert_array_equal(again.place_index().spectra, spectra(loc.place_index().descriptors))
 
 
-def test_tracking_on_a_coarser_gicp_map_finds_the_sensor_pose_and_the_voxelised_map_is_cached(
+def test_tracking_finds_the_sensor_pose_and_the_voxelised_map_is_cached(
         street: tuple[Scene, np.ndarray], tmp_path: object) -> None:
     scene, map_xyz = street
-    config = LocalizationConfig(retrieve=8, map_voxel=0.2, gicp_voxel=0.35)
+    config = LocalizationConfig(retrieve=8, map_voxel=0.2)
     loc = MapLocalizer(map_xyz, config=config, cache_dir=tmp_path)
     np.testing.assert_array_equal(loc.map, voxel_downsample(map_xyz.astype(np.float64), 0.2))
-    coarse = loc.whole_map().index.gicp.cloud.points()[:, :3]
-    np.testing.assert_array_equal(coarse, voxel_downsample(loc.map, 0.35))  # GICP's target
-    assert loc.whole_map().index.points is loc.map  # the scores query the map itself
-    again = MapLocalizer(map_xyz, config=config, cache_dir=tmp_path)  # both voxelisations read from the cache
-    assert sorted(f.name.split("-")[0] for f in tmp_path.glob("*.npy") if not f.name.startswith("index")) == \
-        ["gicp", "map"]
+    assert loc.whole_map().index.points is loc.map  # GICP and the scores on the map itself
+    again = MapLocalizer(map_xyz, config=config, cache_dir=tmp_path)  # the voxelised map read from the cache
+    assert [f.name.split("-")[0] for f in tmp_path.glob("*.npy") if not f.name.startswith("index")] == ["map"]
     np.testing.assert_array_equal(again.map, loc.map)
-    np.testing.assert_array_equal(again.whole_map().index.gicp.cloud.points()[:, :3], coarse)
     rng = np.random.default_rng(8)
     for _ in range(3):
         T = sensor_pose(rng.uniform(-50, 50), rng.uniform(-1.0, 1.0), 1.8, rng.uniform(-np.pi, np.pi))
