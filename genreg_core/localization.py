@@ -255,7 +255,7 @@ class MapLocalizer:
         self.config = config
         self.cache_dir = None if cache_dir is None else Path(cache_dir)
         if config.map_voxel > 0:
-            finite = self.voxelised(finite, config.map_voxel, "map")
+            finite = self.voxelised(finite, config.map_voxel)
         self.map = np.ascontiguousarray(finite, dtype=np.float64)
         self.threads = config.threads or int(os.environ.get("OMP_NUM_THREADS") or 1)
         self.map_threads = config.map_threads or int(os.environ.get("OMP_NUM_THREADS") or 1)
@@ -276,7 +276,7 @@ class MapLocalizer:
         rng = np.random.default_rng(0)
         sample = self.map if len(self.map) <= EXTENT_SAMPLES else self.map[rng.choice(len(self.map), EXTENT_SAMPLES)]
         _, self.extent = robust_extent(sample)
-        self._key = hashlib.sha1(self.map.data).hexdigest()[:16] if cache_dir is not None else ""
+        self._key = content_key(self.map) if cache_dir is not None else ""
         self._places: dict[float, list[np.ndarray]] = {}  # scan radius -> the places' map rows
         # candidates are screened without refinement (ranking only), then verified with the full profile
         cfg = self.registrar.config
@@ -285,11 +285,11 @@ class MapLocalizer:
         self._screen_model = resized(self.registrar.model, config.screen_model_points) or self.registrar.model
         self._screener = Registrar(self._screen_model, self._screen_config, self.registrar.calibration)
 
-    def voxelised(self, points: np.ndarray, size: float, kind: str) -> np.ndarray:
-        """`voxel_downsample` of the points (as float64) to `size`; with `cache_dir`, read from and kept in
-        it by the points' content hash and the size (a large map's voxels once: seconds on millions of
-        points). `kind` names the file ("map": the map on load, "gicp": GICP's coarser map)."""
-        path = None if self.cache_dir is None else self.cache_dir / f"{kind}-{content_key(points)}-v{size:.6g}.npy"
+    def voxelised(self, points: np.ndarray, size: float) -> np.ndarray:
+        """`voxel_downsample` of the map's points (as float64) to `size`; with `cache_dir`, read from and kept
+        in it by the points' content hash and the size (a large map's voxels once: seconds on millions of
+        points)."""
+        path = None if self.cache_dir is None else self.cache_dir / f"map-{content_key(points)}-v{size:.6g}.npy"
         cached = read_points(path) if path is not None and path.is_file() else None
         if cached is not None:
             return cached

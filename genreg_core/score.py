@@ -292,9 +292,10 @@ def see_through(scan: np.ndarray, map_points: np.ndarray, T: np.ndarray, spacing
         return ranges, (row + 1024) * 4096 + column + 2048
 
     ranges, keys = bins(scan)
-    order = np.argsort(keys, kind="stable")
-    seen, first = np.unique(keys[order], return_index=True)
-    nearest = np.minimum.reduceat(ranges[order], first)
+    order = np.argsort(keys)
+    keys = keys[order]
+    first = np.flatnonzero(np.r_[True, keys[1:] != keys[:-1]])  # each direction's first return, sorted
+    seen, nearest = keys[first], np.minimum.reduceat(ranges[order], first)
     R, t = T[:3, :3], T[:3, 3]
     local = (np.asarray(map_points, dtype=np.float64) - t) @ R  # map points in the scan's frame
     map_ranges, map_keys = bins(local)
