@@ -135,6 +135,12 @@ def occupied_cells(points: np.ndarray, spacing: float) -> np.ndarray:
     return np.stack([keys // (size[1] * size[2]), keys // size[2] % size[1], keys % size[2]], axis=1) + low
 
 
+def mapped(path: Path) -> np.ndarray:
+    """A cached .npy array, read-only, mapped from the file rather than read into new memory: the pages the
+    system already caches are shared, not copied (a map's arrays in tens of milliseconds, not seconds)."""
+    return np.asarray(np.load(path, mmap_mode="r", allow_pickle=False))
+
+
 def read_places(path: Path) -> list[np.ndarray] | None:
     """Places written by `write_places`, or None when the file cannot be read (it is then built again)."""
     try:
@@ -158,10 +164,10 @@ def write_places(path: Path, places: list[np.ndarray]) -> None:
 
 
 def read_points(path: Path) -> np.ndarray | None:
-    """(M, 3) float64 points written by `write_points`, or None when the file cannot be read (they are then
-    worked out again)."""
+    """(M, 3) float64 points written by `write_points`, read-only, or None when the file cannot be read
+    (they are then worked out again). Mapped, not read (`mapped`)."""
     try:
-        points = np.load(path, allow_pickle=False)
+        points = mapped(path)
     except (OSError, ValueError):
         return None
     return points if points.dtype == np.float64 and points.ndim == 2 and points.shape[1] == 3 else None
@@ -185,26 +191,26 @@ def content_key(points: np.ndarray) -> str:
     return digest.hexdigest()[:16]
 
 
-INDEX_PARTS = ("centres", "descriptors")  # a cached place index's arrays, one .npy file each
+INDEX_PARTS = ("centres", "spectra")  # a cached place index's arrays, one .npy file each
 
 
 def read_index(stem: Path, geometry: IndexGeometry) -> PlaceIndex | None:
     """A place index written by `write_index` (its files `stem`.<part>.npy), or None when one cannot be read
     (it is then built again)."""
     try:
-        parts = {name: np.load(stem.with_name(f"{stem.name}.{name}.npy"), allow_pickle=False) for name in INDEX_PARTS}
+        parts = {name: mapped(stem.with_name(f"{stem.name}.{name}.npy")) for name in INDEX_PARTS}
     except (OSError, ValueError):
         return None
-    if len(parts["centres"]) != len(parts["descriptors"]):
+    try:
+        return PlaceIndex(geometry, parts["centres"], parts["spectra"])
+    except ValueError:  # written with another geometry, or cut short
         return None
-    return PlaceIndex(geometry, parts["centres"], parts["descriptors"])
 
 
 def write_index(stem: Path, index: PlaceIndex) -> None:
-    """A place index as one .npy file per array (plain files read in one pass, unlike an .npz's zip members:
-    a second on a large map; the descriptors' spectra are worked out again: faster than read from disk), each
-    whole or absent (written aside, then
-    renamed); a folder that cannot be written leaves it in memory only, with a warning."""
+    """A place index as one .npy file per array (plain files read in one pass, unlike an .npz's zip members: a
+    second on a large map), each whole or absent (written aside, then renamed); a folder that cannot be
+    written leaves it in memory only, with a warning."""
     try:
         stem.parent.mkdir(parents=True, exist_ok=True)
         for name in INDEX_PARTS:
@@ -519,7 +525,7 @@ class MapLocalizer:
         if self._whole is None:
             index = self._map_index or TargetIndex(self.map, self.threads, spacing=self.voxel_size,
                                                    build_threads=self.map_threads)
-            index.gicp = GICPTarget(self.map, tree=index.tree, threads=self.threads, build_threads=self.map_threads)
+            index.gicp = GICPTarget(self.map, index=index, threads=self.threads, build_threads=self.map_threads)
             self._voxels = VoxelTarget(gicp_target(index), self.config.screen_voxels * self.voxel_size)
             self._whole = LocalMap(self.map.mean(axis=0), float("inf"), True, index)
         return self._whole

@@ -55,16 +55,15 @@ def icp(
     `method`: Open3D's "point_to_point" or "point_to_plane" (target normals by `estimate_normals`, unless
     the target cloud already has them), or small_gicp's "gicp" (arrays only; covariances from its default
     neighbourhoods). Both clouds are voxel-downsampled first when `voxel_size` > 0. A `TargetIndex` target
-    is its points; GICP also searches its k-d tree instead of building another.
+    is its points; GICP also uses its small_gicp cloud and k-d tree instead of building others.
     """
     if method == "gicp" and isinstance(target, TargetIndex) and voxel_size == 0:
         return gicp_target(target).align(np.asarray(source, dtype=np.float64), init, max_distance=max_distance,
                                          max_iterations=max_iterations, fine=fine)
-    tree, target = (target.tree, target.points) if isinstance(target, TargetIndex) else (None, target)
+    target = target.points if isinstance(target, TargetIndex) else target
     if method == "gicp":
         return gicp(np.asarray(source, dtype=np.float64), np.asarray(target, dtype=np.float64), init,
-                    max_distance=max_distance, max_iterations=max_iterations, voxel_size=voxel_size, target_tree=tree,
-                    fine=fine)
+                    max_distance=max_distance, max_iterations=max_iterations, voxel_size=voxel_size, fine=fine)
     reg = o3d.pipelines.registration
     src = source if isinstance(source, o3d.geometry.PointCloud) else o3d_cloud(source)
     tgt = target if isinstance(target, o3d.geometry.PointCloud) else o3d_cloud(target)
@@ -112,14 +111,17 @@ class GICPTarget:
     many sources against (a map). Each source is prepared the same way on the same `threads` (per point:
     the same result on any number of threads)."""
 
-    def __init__(self, points: np.ndarray, *, tree: small_gicp.KdTree | None = None, neighbours: int = 10,
+    def __init__(self, points: np.ndarray, *, index: TargetIndex | None = None, neighbours: int = 10,
                  threads: int = 1, build_threads: int | None = None) -> None:
-        """`tree`: a small_gicp k-d tree of exactly these rows (`TargetIndex.tree`) instead of building one;
-        `build_threads`: the threads that build the target's tree and covariances (default `threads`: a map
-        prepared once may take more than each source's alignment)."""
+        """`index`: the index of exactly these rows, whose small_gicp cloud and k-d tree are used instead of
+        building them (a map's points held once); `build_threads`: the threads that build the target's tree
+        and covariances (default `threads`: a map prepared once may take more than each source's alignment)."""
         build = build_threads or threads
-        self.cloud = small_gicp.PointCloud(np.ascontiguousarray(points, dtype=np.float64))
-        self.tree = tree or small_gicp.KdTree(self.cloud, num_threads=build)
+        if index is not None:
+            self.cloud, self.tree = index.cloud, index.tree
+        else:
+            self.cloud = small_gicp.PointCloud(np.ascontiguousarray(points, dtype=np.float64))
+            self.tree = small_gicp.KdTree(self.cloud, num_threads=build)
         self.neighbours = neighbours
         self.threads = threads
         small_gicp.estimate_covariances(self.cloud, self.tree, num_neighbors=neighbours, num_threads=build)
@@ -146,17 +148,16 @@ def gicp_target(index: TargetIndex) -> GICPTarget:
     index: every candidate pose of a pair, every scan tracked in one local map, aligns against the same
     target."""
     if index.gicp is None:
-        index.gicp = GICPTarget(index.points, tree=index.tree, threads=index.threads)
+        index.gicp = GICPTarget(index.points, index=index, threads=index.threads)
     return index.gicp
 
 
 def gicp(source: np.ndarray, target: np.ndarray, init: np.ndarray | None = None, *, max_distance: float,
          max_iterations: int, voxel_size: float = 0.0, threads: int = 1, neighbours: int = 10,
-         target_tree: small_gicp.KdTree | None = None, fine: tuple[float, int] | None = None) -> np.ndarray:
+         fine: tuple[float, int] | None = None) -> np.ndarray:
     """small_gicp's GICP from `init`: the 4x4 target_from_source; `fine` as `icp`'s. Both clouds are
     voxel-downsampled by small_gicp when `voxel_size` > 0; point covariances from `neighbours` nearest
-    neighbours. `target_tree`: a small_gicp k-d tree of exactly `target`'s rows (`TargetIndex.tree`) to
-    search instead of building one (without downsampling)."""
+    neighbours."""
     T = np.eye(4) if init is None else np.asarray(init, dtype=np.float64)
     if voxel_size > 0:
         for distance, iterations in stages(max_distance, max_iterations, fine):
@@ -164,7 +165,7 @@ def gicp(source: np.ndarray, target: np.ndarray, init: np.ndarray | None = None,
                                  max_correspondence_distance=distance, num_threads=threads,
                                  max_iterations=iterations).T_target_source
         return np.asarray(T).copy()
-    return GICPTarget(target, tree=target_tree, neighbours=neighbours, threads=threads).align(
+    return GICPTarget(target, neighbours=neighbours, threads=threads).align(
         source, T, max_distance=max_distance, max_iterations=max_iterations, threads=threads, fine=fine)
 
 

@@ -63,7 +63,8 @@ class TargetIndex:
         `build_threads`: the threads that build the k-d tree (a map's, once)."""
         self.points = np.ascontiguousarray(points, dtype=np.float64)
         self.threads = threads or int(os.environ.get("OMP_NUM_THREADS") or 1)
-        self.tree = small_gicp.KdTree(self.points, num_threads=build_threads)
+        self.cloud = small_gicp.PointCloud(self.points)  # the tree's points; GICP's too (`refine.gicp_target`)
+        self.tree = small_gicp.KdTree(self.cloud, num_threads=build_threads)
         self._spacing: float | None = spacing
         self._normals = np.zeros(self.points.shape)  # calloc'd: pages touched only where normals are asked
         self._has_normal = np.zeros(len(self.points), dtype=bool)

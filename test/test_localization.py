@@ -119,8 +119,9 @@ def test_without_a_tracking_model_tracking_scores_uncalibrated_and_a_guess_takes
     guess = make_transform(Rotation.from_rotvec([0.0, 0.02, 0.01]).as_matrix(), [0.02, -0.01, 0.0]) @ truth
     scan = voxel_downsample(seq.points(855, stride=STRIDE).astype(np.float64), loc.voxel_size)
     tracked, calibrated = other.track(scan, guess), loc.track(scan, guess)
-    np.testing.assert_array_equal(tracked.transformation, calibrated.transformation)
-    assert tracked.verification == calibrated.verification and np.isnan(tracked.inlier_ratio)
+    # the same alignment (to its last bits only on one thread: GICP's sums on two run in either order)
+    np.testing.assert_allclose(tracked.transformation, calibrated.transformation, rtol=0, atol=1e-9)
+    assert tracked.verification == pytest.approx(calibrated.verification, rel=1e-6) and np.isnan(tracked.inlier_ratio)
     constraint = math.exp(tracked.verification["log_constraint"])
     assert tracked.confidence == pytest.approx(constraint * overlap_score(tracked.fitness, tracked.tight_fitness, 1.0))
     result = other.localize(seq.points(855, stride=STRIDE), initial_guess=guess)
