@@ -381,6 +381,10 @@ class LocalizationConfig:
                                     "the scan's axis (slide_reach): a scan the map does not hold is rejected "
                                     "sooner; its candidates are still verified (0: always slid).",
                                     low=0.0, high=1.0)
+    unfit_iterations: int = setting(30, "With the place index, the GICP iterations that align the candidates of a "
+                                    "scan no retrieved place fits (verify_fitness): a scan the map does not hold "
+                                    "never converges, and is rejected sooner with fewer (track_iterations: as "
+                                    "tracked).", low=1, high=1000)
     map_threads: int = setting(0, "Threads that prepare the map for the place index's GICP and VGICP on load "
                                "(its k-d trees and covariances: the same result on any number); 0: "
                                "OMP_NUM_THREADS, else 1.", low=0, high=256)

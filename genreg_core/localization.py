@@ -462,13 +462,14 @@ class MapLocalizer:
         return self._local
 
     def track(self, scan: np.ndarray, guess: np.ndarray, geometry: tuple[np.ndarray, float] | None = None,
-              local: LocalMap | None = None) -> RegistrationResult | None:
+              local: LocalMap | None = None, iterations: int | None = None) -> RegistrationResult | None:
         """The voxelised scan aligned by GICP from `guess` (T_map_scan) against the local map around it
         (`local`), verified and built into a result as a registration is (`result.build_result`: inlier ratio
         NaN, taken as 1: no network pass; no generated clouds; `start` "initial_guess"). `geometry`: the
         scan's (centroid, radius) from `scan_geometry`, if known (used only to find the local map). Its confidence is the calibration's tracking
         model's (`tracking_confidence`; without one, uncalibrated as `genreg_core.result` says). None when the
-        map holds too few points around the guess. `local`: the map to align against (default: `local`'s)."""
+        map holds too few points around the guess. `local`: the map to align against (default: `local`'s);
+        `iterations`: GICP's (default `track_iterations`)."""
         t0 = time.perf_counter()
         if local is None:
             centroid, radius = geometry or self.scan_geometry(scan)[:2]
@@ -480,7 +481,7 @@ class MapLocalizer:
         sample = scan[np.sort(rows)]
         voxel, index = self.voxel_size, local.index
         T = gicp_target(index).align(sample, guess, max_distance=c.track_distance * voxel,
-                                     max_iterations=c.track_iterations, threads=self.threads)
+                                     max_iterations=iterations or c.track_iterations, threads=self.threads)
         t1 = time.perf_counter()
         moved = apply_transform(T, sample)
         distance = FITNESS_SPACINGS * voxel
@@ -539,7 +540,8 @@ class MapLocalizer:
         corridor); the `candidates` best distinct poses are
         aligned and verified as tracked scans are (`track`, from the coarse pose), and the most confident
         wins, bounded by its distinct rivals (`chosen`). When even the fittest retrieved pose seats fewer
-        than `verify_fitness` of the points, no slides are tried."""
+        than `verify_fitness` of the points, no slides are tried and the candidates are aligned by
+        `unfit_iterations` GICP iterations."""
         t0 = time.perf_counter()
         c, voxel = self.config, self.voxel_size
         hits = self.place_index().retrieve(scan, c.retrieve)
@@ -562,7 +564,8 @@ class MapLocalizer:
                                                                c.rival_distance * voxel) for j in kept):
                 kept.append(int(k))
         t2 = time.perf_counter()
-        results = [r for k in kept if (r := self.track(scan, coarse[k], local=whole)) is not None]
+        iterations = c.unfit_iterations if unfit else c.track_iterations
+        results = [r for k in kept if (r := self.track(scan, coarse[k], local=whole, iterations=iterations)) is not None]
         if not results:  # nothing retrieved near enough to the map to align: the whole map from the identity
             results = [self.track(scan, np.eye(4), local=whole) or self.registrar.register(scan, self.map)]
         best = self.chosen(results)
