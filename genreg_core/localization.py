@@ -11,7 +11,9 @@ sparse far away, a fused map even: the scan is first voxelised to the map's reso
 nearest-neighbour spacing, or `voxel_size`), so the model's 512 samples of both clouds see the same
 surfaces alike.
 
-Without a guess, the scan is first registered against the whole map; that pose stands when the map is
+Registrations against the map (`Registrar`) run without the refinement guard (`RefineConfig.guard_below`:
+its ICP from the scan's and the map's centroids put together is no pose in a map). Without a guess, the
+scan is first registered against the whole map; that pose stands when the map is
 not much larger than the scan (extent below `whole_map_ratio` x the scan's) or its confidence reaches
 `accept_whole`. Otherwise (a room larger than the view, a floor, a building: too few of the model's map
 samples lie where the scan is; MODEL_CARD "Map relocalisation") the map is cut into candidate places: the centres
@@ -286,6 +288,11 @@ class MapLocalizer:
         self._places: dict[float, list[np.ndarray]] = {}  # scan radius -> the places' map rows
         # candidates are screened without refinement (ranking only), then verified with the full profile
         cfg = self.registrar.config
+        # the map's registrations run without the refinement guard: its ICP from the scan's and the map's
+        # centroids put together is no pose in a map (on redkitchen training maps it never placed a scan that
+        # registration had not, and tripled the median time: MODEL_CARD "Map relocalisation")
+        self._mapper = Registrar(self.registrar.model, replace(cfg, refine=replace(cfg.refine, guard_below=0.0)),
+                                 self.registrar.calibration)
         self._screen_config = replace(cfg, refine=replace(cfg.refine, method="none", num_points=config.screen_points),
                                       pdsac=replace(cfg.pdsac, modes=1))
         self._screen_model = resized(self.registrar.model, config.screen_model_points) or self.registrar.model
@@ -405,7 +412,7 @@ class MapLocalizer:
         `verify_above` or more, verified against crops."""
         centroid, radius, extent = geometry
         c = self.config
-        whole = self.judged(self.registrar.register(scan, self.map), scan)
+        whole = self.judged(self._mapper.register(scan, self.map), scan)
         places = self.places(radius)
         if self.extent < c.whole_map_ratio * extent or whole.confidence >= c.accept_whole or not places:
             return [whole]
@@ -567,7 +574,7 @@ class MapLocalizer:
         iterations = c.unfit_iterations if unfit else c.track_iterations
         results = [r for k in kept if (r := self.track(scan, coarse[k], local=whole, iterations=iterations)) is not None]
         if not results:  # nothing retrieved near enough to the map to align: the whole map from the identity
-            results = [self.track(scan, np.eye(4), local=whole) or self.registrar.register(scan, self.map)]
+            results = [self.track(scan, np.eye(4), local=whole) or self._mapper.register(scan, self.map)]
         best = self.chosen(results)
         best.timings = {"retrieve": t1 - t0, "screen": t2 - t1, "refine": time.perf_counter() - t2,
                         "total": time.perf_counter() - t0}
@@ -630,7 +637,7 @@ class MapLocalizer:
         `centre` (the whole map when the crop holds too few points)."""
         crop = self.crop(centre, self.config.crop_radius * radius)
         target = crop if len(crop) >= self.registrar.config.min_points else self.map
-        return self.registrar.register(scan, target, guess)
+        return self._mapper.register(scan, target, guess)
 
 
 __all__ = ["TRACKING_CALIBRATION", "MapLocalizer", "median_spacing"]
