@@ -406,6 +406,9 @@ def main(argv: list[str] | None = None) -> int:
         return _error(str(exc))
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
+    except RuntimeError:  # rcl's "context is not valid": SIGINT shut rclpy down while the executor built its wait set
+        if rclpy.ok():
+            raise
     finally:
         if node is not None:
             node.close()
