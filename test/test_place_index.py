@@ -136,6 +136,15 @@ def test_global_localisation_with_the_index_places_held_out_scans_and_never_conf
     for index in (again.place_index(), loc.place_index()):
         np.testing.assert_array_equal(index.centres, fresh.centres)
         np.testing.assert_array_equal(index.spectra, fresh.spectra)
+    # read from the files, not copied: read-only (nothing can write into a cache through them)
+    assert not again.place_index().spectra.flags.writeable and not again.map.flags.writeable
+    # cut short (a full disk, a killed writer): the arrays are worked out again, the same, and written whole
+    for path in tmp_path.glob("*.npy"):
+        path.write_bytes(path.read_bytes()[:200])
+    rebuilt = MapLocalizer(map_xyz, config=config, cache_dir=tmp_path)
+    np.testing.assert_array_equal(rebuilt.map, loc.map)
+    np.testing.assert_array_equal(rebuilt.place_index().spectra, fresh.spectra)
+    assert not MapLocalizer(map_xyz, config=config, cache_dir=tmp_path).place_index().spectra.flags.writeable
 
 
 def test_tracking_finds_the_sensor_pose_and_the_voxelised_map_is_cached(
