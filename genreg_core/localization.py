@@ -290,7 +290,7 @@ class MapLocalizer:
         cfg = self.registrar.config
         # the map's registrations run without the refinement guard: its ICP from the scan's and the map's
         # centroids put together is no pose in a map (on redkitchen training maps it never placed a scan that
-        # registration had not, and tripled the median time: MODEL_CARD "Map relocalisation")
+        # registration had not, and tripled the median time: MODEL_CARD "Maps: load and rejection")
         self._mapper = Registrar(self.registrar.model, replace(cfg, refine=replace(cfg.refine, guard_below=0.0)),
                                  self.registrar.calibration)
         self._screen_config = replace(cfg, refine=replace(cfg.refine, method="none", num_points=config.screen_points),

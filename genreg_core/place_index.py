@@ -17,9 +17,9 @@ raster of `cell` m, so a scan and the map around its true place agree up to what
 
 Retrieval compares the scan's image with every place's at every sector shift (a circular
 cross-correlation by FFT over the places' spectra, computed with the index and kept in place of the
-descriptors); the best shifts give the heading. It costs rings x sectors multiply-adds per place, about a microsecond: a map of 10^4 places is
-searched in about 10 ms, and the search is a small share of a localisation's time at any map size the
-node holds in memory. (Rotation-invariant keys, such as each ring's mean or its spectrum's magnitudes,
+descriptors); the best shifts give the heading. It costs rings x sectors multiply-adds per place, about a
+microsecond: a map of 10^4 places is searched in about 10 ms, and the search is a small share of a
+localisation's time at any map size the node holds in memory. (Rotation-invariant keys, such as each ring's mean or its spectrum's magnitudes,
 shortlisted the true place far less often on synthetic streets, so every place is compared.)
 
 Conventions (`genreg_core.geometry`): metres, x forward, y left, z up; yaw counter-clockwise about z.
