@@ -42,6 +42,7 @@ ROBUST_QUANTILE = 0.001  # robust_extent ignores this share of the points on eac
 # No normalised point may lie farther than this many source extents from the source's box: beyond it the
 # network's squared distances leave float32 (and no registration is meaningful: clouds in other units)
 MAX_REACH = 1e6
+MIN_SPREAD = 1e-6  # ... and no normalised cloud may span less than this many source extents (it is a point)
 
 
 def validate_cloud(points: object, name: str, min_points: int) -> tuple[np.ndarray, np.ndarray]:
@@ -309,16 +310,20 @@ def prepare_pair(
     if not np.isfinite(scale):
         raise InvalidPointCloudError(f"source extent overflows float64 ({scale}): coordinates too large")
 
-    def normalized(points: np.ndarray) -> np.ndarray:
+    def normalized(points: np.ndarray, name: str) -> np.ndarray:
         with np.errstate(over="ignore"):  # finite input: an overflow is inf, never NaN
             moved = ((points - offset) / scale).astype(np.float32)
         reach = float(np.abs(moved).max())
         if reach > MAX_REACH:
             raise InvalidPointCloudError(f"a cloud reaches {reach:.3g} source extents (of {scale:.3g}) from the source, "
                                          f"more than {MAX_REACH:.0e}: are both clouds in the same units?")
+        spread = float(np.ptp(moved, axis=0).max())
+        if spread < MIN_SPREAD:  # a point at the source's scale (squared distances in it leave float32)
+            raise InvalidPointCloudError(f"the {name} spans {spread:.3g} source extents (of {scale:.3g}), less than "
+                                         f"{MIN_SPREAD:.0e}: are both clouds in the same units?")
         return moved
 
-    target = normalized(dense_tgt)
+    target = normalized(dense_tgt, "target")
     target.setflags(write=False)  # immutable: `target_index` indexes it once for the pair
-    return PreparedPair(src, src_mask, init, offset, scale, normalized(a), normalized(b), normalized(dense_src),
-                        target, time.perf_counter() - t0)
+    return PreparedPair(src, src_mask, init, offset, scale, normalized(a, "source"), normalized(b, "target"),
+                        normalized(dense_src, "source"), target, time.perf_counter() - t0)

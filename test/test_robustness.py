@@ -171,6 +171,26 @@ def test_coordinates_beyond_float_range_are_invalid(registrars, shape):
     with pytest.raises(InvalidPointCloudError, match="source extents"):
         reg.register(outlier, shape)
     reg.register(shape, shape.astype(np.float64) * 1e4)  # a scan in a map 10,000x its size still runs
+    # a target 1e-33 source extents wide (distinct points, but a point at the source's scale: its squared
+    # distances leave float32, and the network's outputs were NaN), and a source as small beside its target
+    for source, target in ((shape * 1e11, shape * 1e-22), (shape * 1e-22, shape)):
+        with pytest.raises(InvalidPointCloudError, match="same units"):
+            reg.register(source.astype(np.float64), target.astype(np.float64))
+    reg.register(shape, shape.astype(np.float64) * 1e-4)  # a target 10,000x smaller than the scan still runs
+
+
+def test_the_row_maximum_of_a_row_holding_nan_is_torchs():
+    """The compiled first index of a row's maximum has no maximum to find in a row holding NaN (NaN equals
+    nothing): the row's value and index are torch's own (a valid index, not one past the end)."""
+    from genreg_core.model.genreg import row_max
+
+    x = torch.from_numpy(np.random.default_rng(3).standard_normal((1, 4, 6)).astype(np.float32))
+    x[0, 2, 3] = float("nan")
+    with torch.no_grad():
+        top, index = row_max(x)
+    want_top, want_index = x.max(dim=-1)
+    assert torch.equal(index, want_index) and int(index.max()) < x.shape[-1]
+    np.testing.assert_array_equal(top.numpy(), want_top.numpy())  # NaN where torch's is NaN
 
 
 def test_unusable_checkpoints_say_why_in_one_line(tmp_path):
