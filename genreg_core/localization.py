@@ -175,13 +175,18 @@ def read_points(path: Path) -> np.ndarray | None:
     return points if points.dtype == np.float64 and points.ndim == 2 and points.shape[1] == 3 else None
 
 
+def save_whole(path: Path, array: np.ndarray) -> None:
+    """An array as a .npy file, whole or absent: written aside, then renamed (OSError if it cannot be)."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    np.save(path.with_suffix(".tmp.npy"), array)
+    os.replace(path.with_suffix(".tmp.npy"), path)
+
+
 def write_points(path: Path, points: np.ndarray) -> None:
-    """Points as one .npy file, whole or absent (written aside, then renamed); a folder that cannot be
-    written leaves them in memory only, with a warning."""
+    """Points as one .npy file (`save_whole`); a folder that cannot be written leaves them in memory only,
+    with a warning."""
     try:
-        path.parent.mkdir(parents=True, exist_ok=True)
-        np.save(path.with_suffix(".tmp.npy"), points)
-        os.replace(path.with_suffix(".tmp.npy"), path)
+        save_whole(path, points)
     except OSError as exc:
         warnings.warn(f"map points not cached in {path.parent}: {exc.strerror or exc}", stacklevel=3)
 
@@ -210,15 +215,11 @@ def read_index(stem: Path, geometry: IndexGeometry) -> PlaceIndex | None:
 
 
 def write_index(stem: Path, index: PlaceIndex) -> None:
-    """A place index as one .npy file per array (plain files read in one pass, unlike an .npz's zip members: a
-    second on a large map), each whole or absent (written aside, then renamed); a folder that cannot be
-    written leaves it in memory only, with a warning."""
+    """A place index as one .npy file per array (`save_whole`: plain files, mapped on reading); a folder that
+    cannot be written leaves it in memory only, with a warning."""
     try:
-        stem.parent.mkdir(parents=True, exist_ok=True)
         for name in INDEX_PARTS:
-            path = stem.with_name(f"{stem.name}.{name}.npy")
-            np.save(path.with_suffix(".tmp.npy"), getattr(index, name))
-            os.replace(path.with_suffix(".tmp.npy"), path)
+            save_whole(stem.with_name(f"{stem.name}.{name}.npy"), getattr(index, name))
     except OSError as exc:
         warnings.warn(f"place index not cached in {stem.parent}: {exc.strerror or exc}", stacklevel=3)
 
@@ -533,7 +534,7 @@ class MapLocalizer:
         if self._whole is None:
             index = self._map_index or TargetIndex(self.map, self.threads, spacing=self.voxel_size,
                                                    build_threads=self.map_threads)
-            index.gicp = GICPTarget(self.map, index=index, threads=self.threads, build_threads=self.map_threads)
+            index.gicp = GICPTarget(index, threads=self.threads, build_threads=self.map_threads)
             self._voxels = VoxelTarget(gicp_target(index), self.config.screen_voxels * self.voxel_size)
             self._whole = LocalMap(self.map.mean(axis=0), float("inf"), True, index)
         return self._whole

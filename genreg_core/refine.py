@@ -111,16 +111,16 @@ class GICPTarget:
     many sources against (a map). Each source is prepared the same way on the same `threads` (per point:
     the same result on any number of threads)."""
 
-    def __init__(self, points: np.ndarray, *, index: TargetIndex | None = None, neighbours: int = 10,
-                 threads: int = 1, build_threads: int | None = None) -> None:
-        """`index`: the index of exactly these rows, whose small_gicp cloud and k-d tree are used instead of
-        building them (a map's points held once); `build_threads`: the threads that build the target's tree
+    def __init__(self, target: np.ndarray | TargetIndex, *, neighbours: int = 10, threads: int = 1,
+                 build_threads: int | None = None) -> None:
+        """`target`: the points, or their `TargetIndex`, whose small_gicp cloud and k-d tree are used instead
+        of building them (a map's points held once); `build_threads`: the threads that build the target's tree
         and covariances (default `threads`: a map prepared once may take more than each source's alignment)."""
         build = build_threads or threads
-        if index is not None:
-            self.cloud, self.tree = index.cloud, index.tree
+        if isinstance(target, TargetIndex):
+            self.cloud, self.tree = target.cloud, target.tree
         else:
-            self.cloud = small_gicp.PointCloud(np.ascontiguousarray(points, dtype=np.float64))
+            self.cloud = small_gicp.PointCloud(np.ascontiguousarray(target, dtype=np.float64))
             self.tree = small_gicp.KdTree(self.cloud, num_threads=build)
         self.neighbours = neighbours
         self.threads = threads
@@ -148,7 +148,7 @@ def gicp_target(index: TargetIndex) -> GICPTarget:
     index: every candidate pose of a pair, every scan tracked in one local map, aligns against the same
     target."""
     if index.gicp is None:
-        index.gicp = GICPTarget(index.points, index=index, threads=index.threads)
+        index.gicp = GICPTarget(index, threads=index.threads)
     return index.gicp
 
 

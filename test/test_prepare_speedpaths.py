@@ -253,7 +253,7 @@ def test_gicp_prepares_on_more_threads_with_the_same_transform():
     src = _surface(6000, seed=7)
     truth = random_transform(np.random.default_rng(8), 3.0, 0.02)
     tgt = apply_transform(truth, _surface(6000, seed=9))
-    runs = [GICPTarget(tgt, index=TargetIndex(tgt, threads=n), threads=n).align(
+    runs = [GICPTarget(TargetIndex(tgt, threads=n), threads=n).align(
         src, max_distance=0.3, max_iterations=20, fine=(0.075, 10)) for n in (1, 2)]
     assert np.array_equal(runs[0], runs[1])
     re, te = transform_errors(runs[0], truth)
