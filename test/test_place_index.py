@@ -7,6 +7,8 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from hypothesis import given
+from hypothesis import strategies as st
 
 from genreg_core.config import LocalizationConfig
 from genreg_core.data.synthetic_lidar import LidarSensor, Scene, lidar_scan, sensor_pose, street_scene
@@ -20,6 +22,7 @@ from genreg_core.place_index import (
     describe,
     height_image,
     shift_distances,
+    smallest,
     spectra,
 )
 from genreg_core.preprocess import voxel_downsample
@@ -73,6 +76,13 @@ def test_fft_shift_distances_equal_the_brute_force_scan_context_distance() -> No
             # candidate sector j + s against the query's sector j
             expected = 1.0 - np.mean([cosine(query[:, j], candidates[k, :, (j + s) % sectors]) for j in range(sectors)])
             assert got[k, s] == pytest.approx(expected, abs=1e-5)
+
+
+@given(st.lists(st.integers(0, 6), min_size=1, max_size=60), st.integers(1, 70))
+def test_the_smallest_values_are_those_a_stable_sort_puts_first(values: list[int], count: int) -> None:
+    # few distinct values: ties at the boundary, broken by index as a stable sort breaks them
+    array = np.asarray(values, dtype=np.float64)
+    np.testing.assert_array_equal(smallest(array, count), np.argsort(array, kind="stable")[:count])
 
 
 def test_descriptor_bins_hold_the_highest_point_of_each_polar_bin_and_nothing_behind_a_wall() -> None:
