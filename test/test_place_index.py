@@ -123,6 +123,24 @@ def test_retrieval_finds_the_place_and_heading_of_held_out_scans(street: tuple[S
     assert found >= 8
 
 
+def test_retrieval_is_the_same_in_chunks_and_its_best_hit_is_the_best_place_and_shift(street: tuple[Scene, np.ndarray]
+                                                                                      ) -> None:
+    scene, map_xyz = street
+    index = PlaceIndex.build(map_xyz, IndexGeometry())
+    scan = lidar_scan(scene, sensor_pose(12.0, 0.5, 1.8, 0.7), np.random.default_rng(5), SENSOR).points
+    hits = index.retrieve(scan.astype(np.float64), 12)
+    chunked = index.retrieve(scan.astype(np.float64), 12, chunk=5)  # chunks of 5 places: many boundaries
+    assert [(tuple(h.centre), h.yaw, h.distance) for h in hits] == [(tuple(h.centre), h.yaw, h.distance) for h in chunked]
+    # the best hit is the smallest distance of every place at every shift, worked out on all places at once
+    query, _ = index.describe_scan(scan.astype(np.float64))
+    every = shift_distances(spectra(query[None]), index.spectra, index.geometry.sectors)
+    place, shift = np.unravel_index(np.argmin(every), every.shape)
+    np.testing.assert_allclose(hits[0].centre[:2], index.centres[place, :2])
+    assert hits[0].yaw == pytest.approx(np.angle(np.exp(2j * np.pi * shift / index.geometry.sectors)))
+    assert hits[0].distance == pytest.approx(float(every[place, shift]), abs=1e-6)
+    assert [h.distance for h in hits] == sorted(h.distance for h in hits)
+
+
 def test_global_localisation_with_the_index_places_held_out_scans_and_never_confidently_wrong(
         street: tuple[Scene, np.ndarray], tmp_path: object) -> None:
     scene, map_xyz = street
