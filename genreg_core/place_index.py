@@ -39,7 +39,8 @@ from genreg_core.errors import TooFewPointsError
 EMPTY = np.float32(np.inf)  # a raster cell without points
 GROUND_REACH = 15.0  # a scan's ground under its sensor is estimated from the cells within this many metres
 GROUND_QUANTILE = 0.2  # ... as this quantile of their local ground
-VERSION = 4  # of the descriptors and their spectra' layout: part of a cached index's name (a change makes caches stale)
+VERSION = 4  # of the descriptors and their spectra's layout: part of a cached index's name (a change makes
+# caches stale)
 BLOCKING = 0.95  # a descriptor bin this high (a share of the band) is a wall: the bins behind it are hidden
 
 

@@ -322,8 +322,9 @@ MAP_OVERRIDES: dict[str, Any] = {**SCENE_OVERRIDES, "workers": 1, "map.enabled":
 # pose seats under 80 % of its points (verify_fitness: on the training world the fittest of every road scan
 # seated 0.906 or more, of every off-map scan 0.735 or less), whose candidates GICP aligns by 3 iterations, not
 # 30 (unfit_iterations: on the training world, 40 off-map scans rejected in 176 ms median against 241 at 30 and
-# 205 at 5, road and indoor scans' results unchanged from 30 down to 2; at 1 an off-map scan was accepted). GICP on the map itself (MODEL_CARD: a coarser GICP map, tried for its load
-# time, made two held-out indoor scans confidently wrong)
+# 205 at 5, road and indoor scans' results unchanged from 30 down to 2; at 1 an off-map scan was accepted).
+# GICP on the map itself (MODEL_CARD: a coarser GICP map, tried for its load time, made two held-out indoor
+# scans confidently wrong)
 LIDAR_MAP_OVERRIDES: dict[str, Any] = {**MAP_OVERRIDES, "map.localization.retrieve": 8,
                                        "map.localization.map_voxel": 0.2, "map.localization.threads": 1,
                                        "map.localization.verify_fitness": 0.8, "map.localization.unfit_iterations": 3}
