@@ -157,10 +157,8 @@ def shift_distances(query: np.ndarray, candidates: np.ndarray, sectors: int) -> 
     the candidates' (K, rings) spectra times the query's conjugate (one batched matrix product), then the
     inverse FFT; K x rings x sectors operations."""
     products = np.matmul(candidates, np.conj(query).transpose(0, 2, 1))[..., 0]  # (frequencies, K)
-    distances = scipy.fft.irfft(np.ascontiguousarray(products.T), n=sectors, axis=1)  # similarities x sectors
-    np.multiply(distances, -1.0 / sectors, out=distances)
-    distances += 1.0
-    return distances
+    # place by place (contiguous), so that the minimum over the shifts reads each place's row in one pass
+    return 1.0 - scipy.fft.irfft(np.ascontiguousarray(products.T), n=sectors, axis=1) / sectors
 
 
 def smallest(values: np.ndarray, count: int) -> np.ndarray:
