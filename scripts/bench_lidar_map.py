@@ -40,6 +40,9 @@ Sections (--sections, comma separated):
              centre-line, an HDL-64-like sensor at 2048 columns (~100k points): the first scan localised
              without a guess, each next one from the previous result's pose; lost: a scan not placed
   offmap     scans of another world (seed + 1) localised in the map: accepted count, time
+  mirrored   the first --mirrored-scans road scans of the global section mirrored left to right in the
+             sensor frame (y -> -y; z stays up): a twin street laid out as the map's mirror image, where no
+             pose is right; accepted count, time
   beyond     the map of the survey poses west of the world's middle (x < 0); scans 2-30 m east of it
   picture    docs/lidar_map_errors.png: the map from above (world x, y), the global section's scans coloured
              by TE
@@ -68,8 +71,8 @@ from multiprocessing.connection import Connection
 from pathlib import Path
 from typing import Any, Self
 
-SECTIONS = ("global", "baselines", "curve", "build", "track", "offmap", "beyond", "picture")
-QUICK_SECTIONS = ("global", "curve", "track", "offmap", "beyond", "picture")
+SECTIONS = ("global", "baselines", "curve", "build", "track", "offmap", "mirrored", "beyond", "picture")
+QUICK_SECTIONS = ("global", "curve", "track", "offmap", "mirrored", "beyond", "picture")
 HELD_OUT_SEED = 7  # the first held-out world seed
 TRAINING_SEEDS = (0, 1, 2)
 
@@ -97,6 +100,7 @@ def parse(argv: list[str] | None = None) -> argparse.Namespace:
     p.add_argument("--curve-blocks", default=None, help="world sizes of the curve (default 1x1,2x1,2x2,4x3)")
     p.add_argument("--track-scans", type=int, default=None, help="scans of the drive (default 60)")
     p.add_argument("--offmap-scans", type=int, default=None, help="off-map scans (default 20)")
+    p.add_argument("--mirrored-scans", type=int, default=None, help="mirrored road scans (default 20)")
     p.add_argument("--beyond-scans", type=int, default=None, help="scans beyond the partial map (default 20)")
     p.add_argument("--build-points", type=int, default=10_000_000, help="points of the build section's map")
     p.add_argument("--out", default=None, help="output folder (default runs/bench_lidar_map/<timestamp>)")
@@ -114,7 +118,7 @@ def parse(argv: list[str] | None = None) -> argparse.Namespace:
     a.offmap_seed = a.seed + 1
     a.blocks = a.blocks or ((1, 1) if quick else (4, 3))
     defaults = {"scans": (6, 40), "indoor_scans": (2, 10), "curve_scans": (3, 15), "track_scans": (8, 60),
-                "offmap_scans": (3, 20), "beyond_scans": (4, 20)}
+                "offmap_scans": (3, 20), "mirrored_scans": (3, 20), "beyond_scans": (4, 20)}
     for name, (q, full) in defaults.items():
         if getattr(a, name) is None:
             setattr(a, name, q if quick else full)
@@ -158,6 +162,7 @@ BEYOND_BINS = ((2.0, 10.0), (10.0, 20.0), (20.0, 30.0))
 WARM_LOADS = 3  # loads from the cache after the build (the median is the figure)
 JITTER_M = 0.02  # build: the top-up points' jitter (normal, per axis), m
 INDOOR_HEIGHT = float(inspect.signature(lw.survey_poses).parameters["indoor_height"].default)
+MIRROR = np.array([1.0, -1.0, 1.0])  # the mirrored section's scans: y -> -y in the sensor frame
 STREAMS = {"roads": 1, "indoor": 2, "scans": 3, "curve": 10, "track": 20, "offmap": 30, "beyond": 40}
 BASELINES = ("kiss-matcher+p2plane", "fpfh+ransac+icp")
 
@@ -561,6 +566,26 @@ class Bench:
                             f", confidence {r['confidence']:.2f}")
         self.report.add(f"Load average {load_text()}.", "")
 
+    def run_mirrored(self) -> None:
+        a, s = self.args, self.main
+        _, scans = self.road_scans()
+        recs = []
+        for i, scan in enumerate(progress(scans[: a.mirrored_scans], "mirrored")):
+            rec, _ = localise(s.loc, scan * MIRROR, None, "mirrored", s.world.key, i)
+            recs.append(rec)
+        self.report.records += recs
+        conf = [r["confidence"] for r in recs]
+        ms = [1000 * r["seconds"] for r in recs]
+        self.report.add(f"## Mirrored scans: {len(recs)} road scans of {s.world.key} mirrored left to right (y -> -y)", "")
+        self.report.table(["scans", "accepted (confidence >= 0.5)", "confidence median (max)", "ms median", "ms p95"],
+                          [[str(len(recs)), f"{sum(c >= GATE for c in conf)}/{len(recs)}",
+                            f"{np.median(conf):.2f} ({max(conf):.2f})", fmt(pct(ms, 50)), fmt(pct(ms, 95))]])
+        for r in recs:
+            if r["confidence"] >= GATE:
+                self.report.add(f"- accepted mirrored scan {r['i']}: put at {pose_text(r['estimate'])}, confidence "
+                                f"{r['confidence']:.2f}; unconstrained: {'; '.join(r['unconstrained']) or '-'}")
+        self.report.add(f"Load average {load_text()}.", "")
+
     def run_beyond(self) -> None:
         a = self.args
         w = self.main.world if self._main is not None else self.world(a.seed, a.blocks)
@@ -874,7 +899,7 @@ def main() -> int:
     bench = Bench(a, report, figures)
     runs: dict[str, Callable[[], None]] = {
         "global": bench.run_global, "baselines": bench.run_baselines, "curve": bench.run_curve,
-        "build": bench.run_build, "track": bench.run_track, "offmap": bench.run_offmap,
+        "build": bench.run_build, "track": bench.run_track, "offmap": bench.run_offmap, "mirrored": bench.run_mirrored,
         "beyond": bench.run_beyond, "picture": bench.run_picture}
     for name in SECTIONS:
         if name in a.sections:

@@ -41,8 +41,8 @@ def table_rows(report: str) -> dict[str, list[str]]:
 def test_quick_global_placed_share_matches_an_independent_truth(tmp_path):
     out = tmp_path / "run"
     done = subprocess.run(
-        [sys.executable, "scripts/bench_lidar_map.py", "--quick", "--sections", "global", "--scans", str(SCANS),
-         "--indoor-scans", "0", "--threads", "2", "--no-progress", "--out", str(out)],
+        [sys.executable, "scripts/bench_lidar_map.py", "--quick", "--sections", "global,mirrored", "--scans", str(SCANS),
+         "--indoor-scans", "0", "--mirrored-scans", "2", "--threads", "2", "--no-progress", "--out", str(out)],
         check=False, cwd=REPO, capture_output=True, text=True, timeout=300)
     assert done.returncode == 0, done.stderr[-3000:]
     report = (out / "report.md").read_text()
@@ -57,6 +57,10 @@ def test_quick_global_placed_share_matches_an_independent_truth(tmp_path):
 
     results = json.loads((out / "results.json").read_text())
     meta = results["meta"]
+    mirrored = [r for r in results["records"] if r["section"] == "mirrored"]  # no truth: counted by confidence
+    row = table_rows(report)["2"]
+    assert len(mirrored) == 2 and "truth" not in mirrored[0]
+    assert row[1] == f"{sum(r['confidence'] >= meta['gate'] for r in mirrored)}/2"
     records = [r for r in results["records"] if r["section"] == "global" and r["kind"] == "roads"]
     assert len(records) == SCANS and not meta["train"] and meta["seed"] >= 7
 
