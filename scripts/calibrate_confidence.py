@@ -34,8 +34,8 @@ used: their ground truth disagrees with the map's by up to 4 deg and 7 cm, 7-Sce
 (docs/reliability_7scenes_tracking.png) are printed and written as `fit`'s.
 `fit-map` fits the model of `MapLocalizer`'s global results (`confidence.MAP_CALIBRATION`: a registration's
 probability and the see-through share, `MapLocalizer.judged`) the same way: maps fused from every 10th frame
-of 100-frame redkitchen training stretches (starting at 0, 100, ..., 700), scans between the map frames, up to
-70 frames before the stretch and 130-199 frames after it (never past frame 799): partly off the map, where a
+of redkitchen training stretches of 100 frames (starting at 0, 100, ..., 700) and 200 frames (0, 200, 400, 600),
+scans between the map frames, up to 70 frames before the stretch and 30-99 frames after it (never past frame 799): partly off the map, where a
 pose slid along the room seats the scan as well as the right one; and the scans between mirrored (x -> -x
 in the camera frame: a room laid out as the map's mirror image, as in many buildings' twin rooms; every
 pose of them wrong). Every candidate result of a scan
@@ -295,10 +295,11 @@ def fit_tracking(model: str, per_map: int) -> None:
     print("wrote", figure)
 
 
-MAP_STRETCH = 100  # fit-map: frames of a training map's stretch (every 10th fused)
-MAP_STARTS = range(0, 800, 100)  # ... its first frames
-MAP_BEYOND = (130, 200, 7)  # scans this many frames after the stretch's start: (first, stop, step)
-MAP_BEFORE = (-70, 0, 7)  # ... and before it
+# fit-map: training maps (every 10th frame of a stretch fused), as (frames in the stretch, its first frames): rooms
+# partly mapped (100 frames) and as large as the held-out maps (200)
+MAP_STRETCHES = ((100, range(0, 800, 100)), (200, range(0, 800, 200)))
+MAP_BEYOND = (30, 100, 7)  # scans this many frames after the stretch's end: (first, stop, step)
+MAP_BEFORE = (-70, 0, 7)  # ... and before its start
 MIRROR = np.array([-1.0, 1.0, 1.0])  # fit-map's mirrored scans: x -> -x in the camera frame
 
 
@@ -311,15 +312,16 @@ def map_rows(per_map: int) -> Iterator[tuple[str, int, np.ndarray, bool]]:
 
     kitchen, scan_id = RGBDSequence.redkitchen(), 0
     _, ok = success(SCENE_MODEL)
-    for start in MAP_STARTS:
-        loc = MapLocalizer(kitchen.fused(range(start, start + MAP_STRETCH, 10), stride=4))
-        between = [i for i in range(start, start + MAP_STRETCH) if i % 10]
+    for length, start in ((length, start) for length, starts in MAP_STRETCHES for start in starts):
+        loc = MapLocalizer(kitchen.fused(range(start, start + length, 10), stride=4))
+        between = [i for i in range(start, start + length) if i % 10]
+        end = start + length
         sets = {"between": [between[int(k)] for k in np.linspace(0, len(between) - 1, per_map)],
-                "beyond": list(range(start + MAP_BEYOND[0], start + MAP_BEYOND[1], MAP_BEYOND[2])),
+                "beyond": list(range(end + MAP_BEYOND[0], end + MAP_BEYOND[1], MAP_BEYOND[2])),
                 "before": list(range(start + MAP_BEFORE[0], start + MAP_BEFORE[1], MAP_BEFORE[2]))}
         sets["mirrored"] = sets["between"]  # no pose of a mirrored scan is right
         for name, frames in sets.items():
-            for i in tqdm([i for i in frames if 0 <= i < 800 and i in kitchen], desc=f"map {start} {name}", leave=False):
+            for i in tqdm([i for i in frames if 0 <= i < 800 and i in kitchen], desc=f"map {start}+{length} {name}", leave=False):
                 points = kitchen.points(i, stride=4).astype(np.float64) * (MIRROR if name == "mirrored" else 1.0)
                 scan = voxel_downsample(points, loc.voxel_size)
                 truth, scan_id = kitchen.pose(i), scan_id + 1
