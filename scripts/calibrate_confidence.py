@@ -58,6 +58,7 @@ from tqdm import tqdm
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
+from genreg_bench.map_suite import MIRROR  # fit-map's mirrored scans: as the map suite's
 from genreg_bench.report import calibration_stats
 from genreg_core.checkpoint import resolve_checkpoint
 from genreg_core.confidence import ConfidenceModel, Logistic, calibration_path, feature_vector, file_sha256
@@ -300,7 +301,6 @@ def fit_tracking(model: str, per_map: int) -> None:
 MAP_STRETCHES = ((100, range(0, 800, 100)), (200, range(0, 800, 200)))
 MAP_BEYOND = (30, 100, 7)  # scans this many frames after the stretch's end: (first, stop, step)
 MAP_BEFORE = (-70, 0, 7)  # ... and before its start
-MIRROR = np.array([-1.0, 1.0, 1.0])  # fit-map's mirrored scans: x -> -x in the camera frame
 
 
 def map_rows(per_map: int) -> Iterator[tuple[str, int, np.ndarray, bool]]:
