@@ -9,7 +9,7 @@ larger than any scan: the candidate places do the work). Scans are the frames be
 spread subset per map); off-map scans come from another building (SUN3D for redkitchen, redkitchen for SUN3D,
 7-Scenes stairs for the combined map); mirrored scans (--mirrored) are on-map scans of the map's own
 sequence mirrored in their camera frame (x -> -x): a room laid out as the map's mirror image, as twin rooms
-in many buildings are, where no pose is right. A scan's truth is T_map_scan: it maps the scan's camera-frame points
+in many buildings are, where no pose is right unless the view is symmetric. A scan's truth is T_map_scan: it maps the scan's camera-frame points
 into the map frame (the frame's pose, shifted with its map).
 
 Methods, on the same scans:
@@ -321,7 +321,7 @@ def run_map_suite(args: argparse.Namespace) -> int:
     records: list[dict[str, Any]] = []
     t0 = time.perf_counter()
     for case in map_cases(n_scans, args.off_map, stride, args.map_voxel, args.combined_map, args.data_root):
-        if case.key != "beyond":  # the beyond map's scans are partly off it: their mirror images could seat
+        if case.key != "beyond":  # that map checks scans past its stretch; the room maps check twins
             case.off_map += mirrored_scans(case.scans, args.mirrored)
         methods: dict[str, Method] = {}
         load_s = None
