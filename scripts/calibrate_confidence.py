@@ -34,11 +34,11 @@ used: their ground truth disagrees with the map's by up to 4 deg and 7 cm, 7-Sce
 (docs/reliability_7scenes_tracking.png) are printed and written as `fit`'s.
 `fit-map` fits the model of `MapLocalizer`'s global results (`confidence.MAP_CALIBRATION`: a registration's
 probability and the see-through share, `MapLocalizer.judged`) the same way: maps fused from every 10th frame
-of redkitchen training stretches of 100 frames (starting at 0, 100, ..., 700) and 200 frames (0, 200, 400, 600),
-scans between the map frames, up to 70 frames before the stretch and 30-99 frames after it (never past frame 799): partly off the map, where a
-pose slid along the room seats the scan as well as the right one; and the scans between mirrored (x -> -x
-in the camera frame: a room laid out as the map's mirror image, as in many buildings' twin rooms; every
-pose of them wrong). Every candidate result of a scan
+of redkitchen training stretches of 100 frames (starting at 0, 100, ..., 700) and 200 frames (0, 200, 400,
+600); scans between the map frames, up to 70 frames before the stretch and 30-99 frames after it (never past
+frame 799: partly off the map, where a pose slid along the room seats the scan as well as the right one), and
+the scans between mirrored (x -> -x in the camera frame: a room laid out as the map's mirror image, as many
+buildings' twin rooms are; every pose of them wrong). Every candidate result of a scan
 (`MapLocalizer.searched`) is a row; a scan's rows share a fold (docs/reliability_7scenes_map.png).
 Held-out pairs: redkitchen frames 800-999 (30, 60, 90 apart, kidnapped), SUN3D (unseen; 20 apart,
 kidnapped); ModelNet40 test split, unseen categories (clean up to 180 deg; crops).
@@ -312,7 +312,7 @@ def map_rows(per_map: int) -> Iterator[tuple[str, int, np.ndarray, bool]]:
 
     kitchen, scan_id = RGBDSequence.redkitchen(), 0
     _, ok = success(SCENE_MODEL)
-    for length, start in ((length, start) for length, starts in MAP_STRETCHES for start in starts):
+    for length, start in [(length, start) for length, starts in MAP_STRETCHES for start in starts]:
         loc = MapLocalizer(kitchen.fused(range(start, start + length, 10), stride=4))
         between = [i for i in range(start, start + length) if i % 10]
         end = start + length

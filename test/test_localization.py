@@ -287,14 +287,14 @@ def test_a_pose_slid_along_the_room_is_judged_below_the_right_one(kitchen):
     assert transform_errors(registered.transformation, seq.pose(855))[1] < 0.05
     slid = registered.transformation.copy()
     slid[:3, 3] += 0.5 * slid[:3, 2]  # forwards along the optical axis: the room's surfaces come nearer
-    judged_at = {}
+    pairs = []  # (right, slid) at the registration's own confidence, then at 0.7
     for probability in (registered.confidence, 0.7):
         right = loc.judged(dataclasses.replace(registered, confidence=probability), scan)
         judged = loc.judged(dataclasses.replace(registered, confidence=probability, transformation=slid), scan)
         assert judged.verification["log_see_through"] > right.verification["log_see_through"] + 1.0
         assert judged.confidence < right.confidence
-        judged_at[probability] = right.confidence, judged.confidence
-    assert judged_at[0.7][1] < 0.5 <= judged_at[registered.confidence][0]
+        pairs.append((right, judged))
+    assert pairs[1][1].confidence < 0.5 <= pairs[0][0].confidence
 
 
 def test_a_scan_of_the_rooms_mirror_image_is_not_accepted():
