@@ -33,6 +33,10 @@ SPACINGS = (1.0, 2.0, 3.0, 5.0)  # overlap shares at these many target spacings
 FEATURES = ("log_share_1", "log_share_2", "log_share_3", "log_share_5", "log_inlier_ratio", "log_constraint",
             "share_1_over_3", "share_2_over_5")
 FLOOR = 1e-3  # logs of shares below this are taken at it
+# see-through shares below this are taken at it: about the lower quartile of right poses' on training maps,
+# where a share is noise (few map points in view), not evidence (MODEL_CARD "Map relocalisation: the
+# see-through floor")
+SEE_THROUGH_FLOOR = 0.01
 MAP_CALIBRATION = "map_global"  # the key of the model of global results in a map (`MapLocalizer`): it refines a
 MAP_FEATURES = ("logit_probability", "log_see_through")  # registration's probability with the see-through share
 FEATURES_OF = {MAP_CALIBRATION: MAP_FEATURES}  # the models over other features than FEATURES
@@ -50,9 +54,9 @@ def features(shares: Sequence[float], inlier_ratio: float, constraint: float) ->
 def map_features(probability: float, see_through: float) -> np.ndarray:
     """The `MAP_FEATURES` vector of a global result in a map: its registration's probability (as a logit, kept
     within FLOOR of 0 and 1) and the log of the share of the map its pose says the scan saw through
-    (`score.see_through`, taken at FLOOR when below)."""
+    (`score.see_through`, taken at SEE_THROUGH_FLOOR when below)."""
     p = min(max(float(probability), FLOOR), 1.0 - FLOOR)
-    return np.array([math.log(p / (1.0 - p)), math.log(max(float(see_through), FLOOR))])
+    return np.array([math.log(p / (1.0 - p)), math.log(max(float(see_through), SEE_THROUGH_FLOOR))])
 
 
 def feature_vector(verification: dict[str, float]) -> np.ndarray:

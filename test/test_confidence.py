@@ -16,6 +16,7 @@ from genreg_core.confidence import (
     FEATURES,
     FEATURES_OF,
     MAP_CALIBRATION,
+    SEE_THROUGH_FLOOR,
     ConfidenceModel,
     calibration_path,
     features,
@@ -45,6 +46,10 @@ def test_every_shipped_model_has_its_own_calibration(name):
         assert model.probability(map_features(0.7, 0.01), MAP_CALIBRATION) > 0.5
         assert model.probability(map_features(0.7, 0.2), MAP_CALIBRATION) < 0.5  # a slide seen in training
         assert model.probability(map_features(0.05, 0.01), MAP_CALIBRATION) < 0.1
+        # a whole-map pose that sees through nothing because it puts little of the scan on the map: seen in
+        # training at registration probabilities of 0.2-0.3, judged 0.8 before the see-through floor
+        assert model.probability(map_features(0.25, 0.0), MAP_CALIBRATION) < 0.5
+        assert np.array_equal(map_features(0.25, 0.0), map_features(0.25, SEE_THROUGH_FLOOR))
 
 
 def test_a_calibration_serves_only_its_checkpoint_and_its_features(tmp_path):
