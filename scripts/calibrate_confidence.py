@@ -6,6 +6,7 @@
     python scripts/calibrate_confidence.py held-out 7scenes       # AUC, ECE, confident-wrong on held-out pairs
     python scripts/calibrate_confidence.py fit-tracking 7scenes   # adds MapLocalizer's tracking model
     python scripts/calibrate_confidence.py fit-map 7scenes        # adds MapLocalizer's model of global results
+    python scripts/calibrate_confidence.py check-map 7scenes --pairs 8   # global localisation in training maps
 
 `fit` registers training pairs through the public API with each refinement the calibration serves (the
 current calibration, if any, choosing among PDSAC's modes as in use; fit twice after a change of features),
@@ -40,6 +41,9 @@ frame 799: partly off the map, where a pose slid along the room seats the scan a
 the scans between mirrored (x -> -x in the camera frame: a room laid out as the map's mirror image, as many
 buildings' twin rooms are; every pose of them wrong). Every candidate result of a scan
 (`MapLocalizer.searched`) is a row; a scan's rows share a fold (docs/reliability_7scenes_map.png).
+`check-map` localises the same sets of scans in the 200-frame training maps as in use (`MapLocalizer.localize`,
+no guess) and prints per set the scans placed (right at confidence >= 0.5), confidently wrong, and the median
+time: the training-side check of a change to map localisation or its model.
 Held-out pairs: redkitchen frames 800-999 (30, 60, 90 apart, kidnapped), SUN3D (unseen; 20 apart,
 kidnapped); ModelNet40 test split, unseen categories (clean up to 180 deg; crops).
 """
@@ -303,6 +307,19 @@ MAP_BEYOND = (30, 100, 7)  # scans this many frames after the stretch's end: (fi
 MAP_BEFORE = (-70, 0, 7)  # ... and before its start
 
 
+def map_sets(kitchen: RGBDSequence, start: int, length: int, per_map: int) -> dict[str, list[int]]:
+    """The training scans of the map of frames start..start+length-1 (every 10th fused), by set: `per_map` of
+    the frames between the map frames, the frames after the stretch (`MAP_BEYOND`) and before it
+    (`MAP_BEFORE`), never outside 0-799, and the frames between again as "mirrored"."""
+    between = [i for i in range(start, start + length) if i % 10]
+    end = start + length
+    sets = {"between": [between[int(k)] for k in np.linspace(0, len(between) - 1, per_map)],
+            "beyond": list(range(end + MAP_BEYOND[0], end + MAP_BEYOND[1], MAP_BEYOND[2])),
+            "before": list(range(start + MAP_BEFORE[0], start + MAP_BEFORE[1], MAP_BEFORE[2]))}
+    sets["mirrored"] = sets["between"]  # no pose of a mirrored scan is right
+    return {name: [i for i in frames if 0 <= i < 800 and i in kitchen] for name, frames in sets.items()}
+
+
 def map_rows(per_map: int) -> Iterator[tuple[str, int, np.ndarray, bool]]:
     """(set, scan, features, success) of every candidate of global results in the redkitchen training maps
     (`fit-map`)."""
@@ -314,20 +331,42 @@ def map_rows(per_map: int) -> Iterator[tuple[str, int, np.ndarray, bool]]:
     _, ok = success(SCENE_MODEL)
     for length, start in [(length, start) for length, starts in MAP_STRETCHES for start in starts]:
         loc = MapLocalizer(kitchen.fused(range(start, start + length, 10), stride=4))
-        between = [i for i in range(start, start + length) if i % 10]
-        end = start + length
-        sets = {"between": [between[int(k)] for k in np.linspace(0, len(between) - 1, per_map)],
-                "beyond": list(range(end + MAP_BEYOND[0], end + MAP_BEYOND[1], MAP_BEYOND[2])),
-                "before": list(range(start + MAP_BEFORE[0], start + MAP_BEFORE[1], MAP_BEFORE[2]))}
-        sets["mirrored"] = sets["between"]  # no pose of a mirrored scan is right
-        for name, frames in sets.items():
-            for i in tqdm([i for i in frames if 0 <= i < 800 and i in kitchen], desc=f"map {start}+{length} {name}", leave=False):
+        for name, frames in map_sets(kitchen, start, length, per_map).items():
+            for i in tqdm(frames, desc=f"map {start}+{length} {name}", leave=False):
                 points = kitchen.points(i, stride=4).astype(np.float64) * (MIRROR if name == "mirrored" else 1.0)
                 scan = voxel_downsample(points, loc.voxel_size)
                 truth, scan_id = kitchen.pose(i), scan_id + 1
                 for result in loc.searched(scan, loc.scan_geometry(scan)):
                     x = np.array([result.verification[f] for f in MAP_FEATURES])
                     yield name, scan_id, x, name != "mirrored" and ok(*transform_errors(result.transformation, truth))
+
+
+def check_map(model: str, per_map: int) -> None:
+    """`check-map`: scans of the 200-frame training maps localised as in use (`MapLocalizer.localize`, no
+    guess): per set, placed (right at confidence >= 0.5), confident-wrong and the median time."""
+    from genreg_core.localization import MapLocalizer
+
+    if model != SCENE_MODEL:
+        raise SystemExit(f"check-map: map localisation is calibrated for the scene model {SCENE_MODEL}, not {model}")
+    kitchen, counts = RGBDSequence.redkitchen(), {}
+    _, ok = success(SCENE_MODEL)
+    length = 200
+    for start in dict(MAP_STRETCHES)[length]:
+        loc = MapLocalizer(kitchen.fused(range(start, start + length, 10), stride=4))
+        for name, frames in map_sets(kitchen, start, length, per_map).items():
+            for i in tqdm(frames, desc=f"check {start}+{length} {name}", leave=False):
+                points = kitchen.points(i, stride=4).astype(np.float64) * (MIRROR if name == "mirrored" else 1.0)
+                t0 = time.perf_counter()
+                result = loc.localize(points)
+                seconds = time.perf_counter() - t0
+                right = name != "mirrored" and ok(*transform_errors(result.transformation, kitchen.pose(i)))
+                confident = result.confidence >= 0.5
+                counts.setdefault(name, []).append((confident and right, confident and not right, seconds))
+    print(f"{model} global localisation in the 200-frame training maps ({', '.join(map(str, dict(MAP_STRETCHES)[length]))}):")
+    for name, rows in counts.items():
+        placed, wrong, seconds = (np.array(column) for column in zip(*rows, strict=True))
+        print(f"  {name:9s} placed {int(placed.sum())}/{len(rows)}  confident-wrong {int(wrong.sum())}  "
+              f"median {1000 * np.median(seconds):.0f} ms")
 
 
 def fit_map(model: str, per_map: int) -> None:
@@ -355,11 +394,12 @@ def fit_map(model: str, per_map: int) -> None:
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("mode", choices=("fit", "held-out", "fit-tracking", "fit-map"))
+    parser.add_argument("mode", choices=("fit", "held-out", "fit-tracking", "fit-map", "check-map"))
     parser.add_argument("model", help="shipped model name (7scenes, modelnet40_dgcnn, modelnet40_partial, modelnet40)")
     parser.add_argument("--pairs", type=int, default=60, help="pairs per set, or scans per map set (default 60)")
     args = parser.parse_args(argv)
-    {"fit": fit, "held-out": held_out, "fit-tracking": fit_tracking, "fit-map": fit_map}[args.mode](args.model, args.pairs)
+    modes = {"fit": fit, "held-out": held_out, "fit-tracking": fit_tracking, "fit-map": fit_map, "check-map": check_map}
+    modes[args.mode](args.model, args.pairs)
     return 0
 
 
