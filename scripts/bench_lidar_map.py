@@ -21,7 +21,9 @@ curve 10 + size, track 20, off-map 30, beyond 40.
 Sections (--sections, comma separated):
   global     the (4, 3)-block world's map: points (before and after the map voxel), area, places; road and
              indoor scans localised without a guess: placed, confident-wrong, time, the confidence of the
-             wrong ones, and whether the true place (within 3 m and 15 deg) was among the 8 retrieved
+             wrong ones, whether the true place (within 3 m and 15 deg) was among the 8 retrieved, and how
+             many of the scans not placed were put at a look-alike place (GICP from GenReg's pose seats the
+             scan at a tracking confidence >= 0.5; `seated`)
   baselines  the first --baseline-scans road scans registered against the whole map by
              KISS-Matcher + point-to-plane and FPFH + RANSAC + ICP (`genreg_bench.baselines`) with
              `BaselineParams.metric_scene().scaled(10)`: the RGB-D settings x10 for LiDAR scale (0.5 m feature
@@ -268,6 +270,14 @@ def retrieved_truth(loc: MapLocalizer, scan: np.ndarray, truth: np.ndarray) -> b
                abs(np.degrees(np.angle(np.exp(1j * (h.yaw - yaw))))) < RETRIEVED_DEG for h in hits)
 
 
+def seated(loc: MapLocalizer, scan: np.ndarray, T: np.ndarray) -> float:
+    """How well the scan seats at (near) T_map_scan `T`: the tracking confidence of GICP from `T` against the
+    whole map (`MapLocalizer.track`, the scan voxelised as `localize` does); 0 when the map holds too little."""
+    tracked = loc.track(voxel_downsample(scan.astype(np.float64), loc.voxel_size), np.asarray(T, dtype=np.float64),
+                        local=loc.whole_map())
+    return 0.0 if tracked is None else float(tracked.confidence)
+
+
 def localise(loc: MapLocalizer, scan: np.ndarray, truth: np.ndarray | None, section: str, kind: str, i: int,
              guess: np.ndarray | None = None, diagnose: bool = True) -> tuple[dict[str, Any], RegistrationResult]:
     """One scan localised (timed) and its record: errors against `truth` (None: off the map)."""
@@ -285,6 +295,8 @@ def localise(loc: MapLocalizer, scan: np.ndarray, truth: np.ndarray | None, sect
         rec["confident_wrong"] = bool(rec["confidence"] >= GATE and not rec["placed"])
         if diagnose and guess is None and loc.config.retrieve:
             rec["truth_retrieved"] = retrieved_truth(loc, scan, truth)
+            if not rec["placed"]:  # a look-alike place, or a miss? how well the scan seats at each pose
+                rec["seated_truth"], rec["seated_estimate"] = seated(loc, scan, truth), seated(loc, scan, T)
     return rec, result
 
 
@@ -320,6 +332,24 @@ def wrong_lines(recs: list[dict[str, Any]], label: str) -> list[str]:
                        f"true place retrieved: {r.get('truth_retrieved', '-')}; "
                        f"unconstrained: {'; '.join(r['unconstrained']) or '-'}")
     return out
+
+
+def lookalike_lines(recs: list[dict[str, Any]], label: str) -> list[str]:
+    """Of the scans not placed, those put at a look-alike place: where the scan seats about as well as at its
+    true one (GICP from GenReg's pose: tracking confidence >= `GATE`), which one scan cannot tell apart."""
+    missed = [r for r in recs if "seated_estimate" in r]
+    if not missed:
+        return []
+    alike = [r for r in missed if r["seated_estimate"] >= GATE]
+    def span(values: list[float]) -> str:
+        return f"{min(values):.2f}" + (f"-{max(values):.2f}" if max(values) > min(values) else "")
+
+    text = (f"{label}: of {len(missed)} scans not placed, {len(alike)} put at a look-alike place (GICP from "
+            f"GenReg's pose seats the scan at a tracking confidence >= {GATE}")
+    if alike:
+        text += (f": {span([r['seated_estimate'] for r in alike])} there, "
+                 f"{span([r['seated_truth'] for r in alike])} at the truth")
+    return [text + ")."]
 
 
 def world_scans(world: lw.World, poses: np.ndarray, rng: np.random.Generator, desc: str,
@@ -386,6 +416,8 @@ class Bench:
         points = np.mean([r["points"] for r in recs])
         self.report.add(f"Scan points: {points:,.0f} (mean). Placed: RE < {MAX_RE_DEG:g} deg and TE < {MAX_TE_M:g} m; "
                         f"confident-wrong: confidence >= {GATE} and not placed. Load average {load_text()}.", "")
+        self.report.add(*lookalike_lines([r for r in recs if r["kind"] == "roads"], "Roads"),
+                        *lookalike_lines([r for r in recs if r["kind"] == "indoor"], "Corridors"), "")
         lines = wrong_lines(recs, "global")
         if lines:
             self.report.add("Confident-wrong scans:", *lines, "")

@@ -5,6 +5,7 @@ checked to put a scan onto the map)."""
 from __future__ import annotations
 
 import json
+import os
 import re
 import subprocess
 import sys
@@ -85,3 +86,26 @@ def test_quick_global_placed_share_matches_an_independent_truth(tmp_path):
         assert rec["confident_wrong"] == confident_wrong
     assert sum(placed) == placed_reported
     assert sum(placed) >= SCANS // 2, f"only {sum(placed)} of {SCANS} held-out scans placed on a one-block world"
+
+
+def test_seated_tells_the_true_place_from_one_the_scan_does_not_fit(monkeypatch):
+    """The look-alike diagnostic of the global section (`seated`: GICP from a pose against the whole map, its
+    tracking confidence) seats a scan at its true pose and not at the same pose 30 m along the map's long side
+    (a 1x1-block world with the shipped LiDAR profile; the truth from the world's own poses)."""
+    monkeypatch.syspath_prepend(str(REPO / "scripts"))
+    monkeypatch.setattr(sys, "argv", ["bench_lidar_map.py"])  # the script reads its arguments on import
+    monkeypatch.setenv("OMP_WAIT_POLICY", os.environ.get("OMP_WAIT_POLICY", "PASSIVE"))  # ... and sets these:
+    monkeypatch.setenv("OMP_NUM_THREADS", os.environ.get("OMP_NUM_THREADS", "2"))  # restored after the test
+    import bench_lidar_map as bench
+
+    from genreg_core.localization import MapLocalizer
+    from genreg_core.registration import Registrar
+
+    world = lw.campus_world(bench.HELD_OUT_SEED, (1, 1))
+    loc = MapLocalizer(lw.cached_map(world), registrar=Registrar.from_checkpoint(bench.SCENE_MODEL, bench.SCENE_REGISTRATION),
+                       config=bench.lidar_config())
+    truth = lw.test_poses(world, 1, np.random.default_rng([bench.HELD_OUT_SEED, 1]))[0]
+    scan = lw.world_scan(world, truth, np.random.default_rng(0), bench.SCAN_SENSOR).points.astype(np.float64)
+    far = truth.copy()
+    far[:3, 3] += [30.0, 0.0, 0.0] if np.ptp(world.bounds[:2]) >= np.ptp(world.bounds[2:]) else [0.0, 30.0, 0.0]
+    assert bench.seated(loc, scan, truth) >= bench.GATE > bench.seated(loc, scan, far)
