@@ -320,6 +320,11 @@ def map_sets(kitchen: RGBDSequence, start: int, length: int, per_map: int) -> di
     return {name: [i for i in frames if 0 <= i < 800 and i in kitchen] for name, frames in sets.items()}
 
 
+def map_scan(kitchen: RGBDSequence, frame: int, name: str) -> np.ndarray:
+    """A training frame's points (camera frame, every 4th pixel), mirrored (`MIRROR`) in the "mirrored" set."""
+    return kitchen.points(frame, stride=4).astype(np.float64) * (MIRROR if name == "mirrored" else 1.0)
+
+
 def map_rows(per_map: int) -> Iterator[tuple[str, int, np.ndarray, bool]]:
     """(set, scan, features, success) of every candidate of global results in the redkitchen training maps
     (`fit-map`)."""
@@ -333,8 +338,7 @@ def map_rows(per_map: int) -> Iterator[tuple[str, int, np.ndarray, bool]]:
         loc = MapLocalizer(kitchen.fused(range(start, start + length, 10), stride=4))
         for name, frames in map_sets(kitchen, start, length, per_map).items():
             for i in tqdm(frames, desc=f"map {start}+{length} {name}", leave=False):
-                points = kitchen.points(i, stride=4).astype(np.float64) * (MIRROR if name == "mirrored" else 1.0)
-                scan = voxel_downsample(points, loc.voxel_size)
+                scan = voxel_downsample(map_scan(kitchen, i, name), loc.voxel_size)
                 truth, scan_id = kitchen.pose(i), scan_id + 1
                 for result in loc.searched(scan, loc.scan_geometry(scan)):
                     x = np.array([result.verification[f] for f in MAP_FEATURES])
@@ -355,9 +359,8 @@ def check_map(model: str, per_map: int) -> None:
         loc = MapLocalizer(kitchen.fused(range(start, start + length, 10), stride=4))
         for name, frames in map_sets(kitchen, start, length, per_map).items():
             for i in tqdm(frames, desc=f"check {start}+{length} {name}", leave=False):
-                points = kitchen.points(i, stride=4).astype(np.float64) * (MIRROR if name == "mirrored" else 1.0)
                 t0 = time.perf_counter()
-                result = loc.localize(points)
+                result = loc.localize(map_scan(kitchen, i, name))
                 seconds = time.perf_counter() - t0
                 right = name != "mirrored" and ok(*transform_errors(result.transformation, kitchen.pose(i)))
                 confident = result.confidence >= 0.5
