@@ -37,7 +37,7 @@ Sections (--sections, comma separated):
   build      a map of --build-points points (the 4x3 map, topped up with a random share of its points
              jittered by 2 cm): MapLocalizer construction (the model's checkpoint included), place index and
              GICP map, first with an empty cache_dir, then 3 times from it (the median is the load time), each
-             in a fresh process (peak resident memory: ru_maxrss)
+             in a fresh process (peak resident memory: its VmHWM)
   track      a 10 Hz drive along the longest street (not the terraced one), 1 m between scans, 1 m off its
              centre-line, an HDL-64-like sensor at 2048 columns (~100k points): the first scan localised
              without a guess, each next one from the previous result's pose; lost: a scan not placed
@@ -813,6 +813,18 @@ def build_child(map_path: Path, cache_dir: Path, threads: int) -> dict[str, Any]
     return json.loads(done.stdout.strip().splitlines()[-1])
 
 
+def peak_rss_mb() -> float:
+    """This process's peak resident memory, MB: VmHWM of /proc/self/status, the high-water mark of its own
+    address space (ru_maxrss would carry over the forking parent's, kept across exec on Linux)."""
+    try:
+        for line in Path("/proc/self/status").read_text().splitlines():
+            if line.startswith("VmHWM:"):
+                return int(line.split()[1]) / 1024  # kB
+    except OSError:
+        pass
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024  # kB on Linux
+
+
 def build_child_main(map_npy: str, cache_dir: str) -> int:
     """Load a map, build MapLocalizer (profile settings, `cache_dir`), its place index and GICP map; print the
     timings and the peak resident memory as one JSON line."""
@@ -828,7 +840,7 @@ def build_child_main(map_npy: str, cache_dir: str) -> int:
     t4 = time.perf_counter()
     loc.whole_map()
     t5 = time.perf_counter()
-    rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024  # kB on Linux
+    rss = peak_rss_mb()
     print(json.dumps({"points": len(map_xyz), "voxelised": len(loc.map), "places": places, "load_npy": t1 - t0,
                       "model": t2 - t1, "construct": t3 - t2, "index": t4 - t3, "whole_map": t5 - t4,
                       "total": (t5 - t0) - (t2 - t1), "maxrss_mb": rss}))
