@@ -7,7 +7,17 @@ import numpy as np
 import pytest
 from scipy.spatial import cKDTree
 
-from genreg_bench.map_suite import Scan, mirrored_scans, off_map_scans, plot_map, sequence_case, summarize
+from genreg_bench.map_suite import (
+    Scan,
+    measure,
+    mirrored_scans,
+    off_map_scans,
+    plot_map,
+    sequence_case,
+    settled_line,
+    settled_truth,
+    summarize,
+)
 from genreg_core.config import data_root
 from genreg_core.data.rgbd import RGBDSequence
 
@@ -69,3 +79,30 @@ def test_mirrored_scans_are_the_scans_mirrored_and_counted_apart_from_off_map_on
     s = summarize(records)
     assert (s["off_accepted"], s["off_n"], s["mirrored_accepted"], s["mirrored_n"]) == (1, 2, 2, 3)
     assert s["off_ms"] == 300.0  # mirrored scans are not in the off-map time
+
+
+@needs_data
+def test_a_confident_result_outside_the_rule_is_measured_against_the_settled_truth():
+    """`measure` with `settled_truth`: a method that answers each scan's recorded pose moved 10 cm, at
+    confidence 0.9, is confidently wrong; GICP started at the recorded pose settles within a few cm of it (the
+    map is fused from the same sequence's poses), so the answer lies about 10 cm from the settled truth too, and
+    the report's line counts none within the rule of it."""
+    kitchen = RGBDSequence.redkitchen()
+    case = sequence_case("k", "kitchen", kitchen, [800, 810, 820, 830], list(range(800, 830)), 2, [], STRIDE, 0.02)
+    shift = np.array([0.1, 0.0, 0.0])
+
+    def moved(scan: Scan) -> tuple[np.ndarray, float]:
+        T = scan.truth.copy()
+        T[:3, 3] += shift
+        return T, 0.9
+
+    records = measure(case, "genreg", moved, False, settled_truth(case, threads=2))
+    assert len(records) == 2
+    for rec in records:
+        assert not rec["success"] and rec["te_m"] == pytest.approx(0.1)
+        assert rec["truth_settled_te_m"] < 0.03
+        assert rec["settled_te_m"] == pytest.approx(0.1, abs=rec["truth_settled_te_m"] + 1e-9)
+    line = settled_line(case, "moved", records)
+    assert line is not None and "2 confident outside the rule; 0 of them within it" in line
+    assert settled_line(case, "moved", [{k: v for k, v in r.items() if not k.startswith("settled")}
+                                        for r in records]) is None  # nothing confident outside the rule
