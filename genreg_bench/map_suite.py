@@ -9,8 +9,8 @@ larger than any scan: the candidate places do the work). Scans are the frames be
 spread subset per map); off-map scans come from another building (SUN3D for redkitchen, redkitchen for SUN3D,
 7-Scenes stairs for the combined map); mirrored scans (--mirrored) are on-map scans of the map's own
 sequence mirrored in their camera frame (x -> -x): a room laid out as the map's mirror image, as twin rooms
-in many buildings are, where no pose is right unless the view is symmetric. A scan's truth is T_map_scan: it maps the scan's camera-frame points
-into the map frame (the frame's pose, shifted with its map).
+in many buildings are, where no pose is right unless the view is symmetric. A scan's truth is T_map_scan: it
+maps the scan's camera-frame points into the map frame (the frame's pose, shifted with its map).
 
 Methods, on the same scans:
 - "GenReg MapLocalizer": `MapLocalizer.localize(scan)`, no guess;
@@ -26,7 +26,8 @@ per scan (on-map, off-map) and, for MapLocalizer, the map's load time (its const
 checkpoint included). Each confident result outside the rule is also measured against where small_gicp's GICP
 started at the recorded pose settles on the map (`settled_truth`: the truth+gicp reference), listed under the
 table: 7-Scenes' recorded poses disagree with their own depth by centimetres. Outputs in --out: report.md (the
-table), results.json (per scan and method) and map_<key>.png (the map from above with the scans' true positions coloured by GenReg's translation error).
+table), results.json (per scan and method) and map_<key>.png (the map from above with the scans' true
+positions coloured by GenReg's translation error).
 """
 
 from __future__ import annotations
@@ -365,7 +366,8 @@ def run_map_suite(args: argparse.Namespace) -> int:
     print("\n".join(lines), flush=True)
     meta: dict[str, Any] = {"threads": args.threads, "load_average_start": os.getloadavg(), "cores": os.cpu_count(),
                             "stride": stride, "map_voxel_m": args.map_voxel, "scans": n_scans,
-                            "off_map": args.off_map, "mirrored": args.mirrored, "gate": GATE, "max_re_deg": MAX_RE_DEG, "max_te_m": MAX_TE,
+                            "off_map": args.off_map, "mirrored": args.mirrored, "gate": GATE,
+                            "max_re_deg": MAX_RE_DEG, "max_te_m": MAX_TE,
                             "date": time.strftime("%Y-%m-%d %H:%M:%S %Z"), "maps": []}
     records: list[dict[str, Any]] = []
     notes: list[str] = []  # confident results outside the rule against the GICP-settled truth

@@ -341,6 +341,7 @@ def lookalike_lines(recs: list[dict[str, Any]], label: str) -> list[str]:
     if not missed:
         return []
     alike = [r for r in missed if r["seated_estimate"] >= GATE]
+
     def span(values: list[float]) -> str:
         return f"{min(values):.2f}" + (f"-{max(values):.2f}" if max(values) > min(values) else "")
 

@@ -62,7 +62,7 @@ from tqdm import tqdm
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
-from genreg_bench.map_suite import MIRROR  # fit-map's mirrored scans: as the map suite's
+from genreg_bench.map_suite import GATE, MIRROR  # the map suite's gate and mirror (check-map, fit-map)
 from genreg_bench.report import calibration_stats
 from genreg_core.checkpoint import resolve_checkpoint
 from genreg_core.confidence import ConfidenceModel, Logistic, calibration_path, feature_vector, file_sha256
@@ -363,9 +363,10 @@ def check_map(model: str, per_map: int) -> None:
                 result = loc.localize(map_scan(kitchen, i, name))
                 seconds = time.perf_counter() - t0
                 right = name != "mirrored" and ok(*transform_errors(result.transformation, kitchen.pose(i)))
-                confident = result.confidence >= 0.5
+                confident = result.confidence >= GATE
                 counts.setdefault(name, []).append((confident and right, confident and not right, seconds))
-    print(f"{model} global localisation in the 200-frame training maps ({', '.join(map(str, dict(MAP_STRETCHES)[length]))}):")
+    starts = ", ".join(map(str, dict(MAP_STRETCHES)[length]))
+    print(f"{model} global localisation in the 200-frame training maps ({starts}):")
     for name, rows in counts.items():
         placed, wrong, seconds = (np.array(column) for column in zip(*rows, strict=True))
         print(f"  {name:9s} placed {int(placed.sum())}/{len(rows)}  confident-wrong {int(wrong.sum())}  "
