@@ -372,7 +372,7 @@ class Bench:
         return lw.campus_world(seed, blocks)
 
     def map_of(self, world: lw.World) -> np.ndarray:
-        return lw.cached_map(world, cache_dir=self.args.cache_dir)
+        return lw.cached_map(world, cache_dir=self.args.cache_dir, progress=not self.args.no_progress)
 
     @property
     def main(self) -> Setup:

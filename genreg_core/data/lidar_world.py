@@ -951,17 +951,17 @@ def map_path(world: World, spacing: float = 3.0, voxel: float = 0.1, cache_dir: 
 
 
 def cached_map(world: World, spacing: float = 3.0, voxel: float = 0.1, cache_dir: str | Path = "cache/lidar_world",
-               sensor: LidarSensor | None = None) -> np.ndarray:
+               sensor: LidarSensor | None = None, progress: bool = True) -> np.ndarray:
     """`build_map(world, survey_poses(world, spacing), sensor, voxel)` (no jitter, corridors included, build
     seed 0), loaded from `map_path(...)` when there, else built and saved there (with a .json beside it:
-    poses, points, area, build seconds, the sensor)."""
+    poses, points, area, build seconds, the sensor); `progress`: a progress bar while building."""
     sensor = sensor or SURVEY_SENSOR
     path = map_path(world, spacing, voxel, cache_dir, sensor)
     if path.exists():
         return np.load(path)
     poses = survey_poses(world, spacing)
     start = time.perf_counter()
-    cloud = build_map(world, poses, sensor, voxel)
+    cloud = build_map(world, poses, sensor, voxel, progress=progress)
     seconds = time.perf_counter() - start
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_name(f"{path.stem}.{os.getpid()}.tmp.npy")
