@@ -24,6 +24,7 @@ a 2 MB residual table). Here each problem is one pass of scalar code, with the f
   rotation-invariant point-pair features), `neighbour_max` (the edge convolution's max over neighbours);
   interact and generate (`model.genreg`): `first_index` (each point's best match, given its log weight),
   `neighbour_mix` (the generated point from the best match's neighbours).
+- Clouds (`preprocess`): `voxel_centroids` (each occupied voxel's centroid, the voxels by a hash table).
 - Scores and output (`score`, `prepare`): `plane_normals` (target normals; `plane_normals_about` about a known mean), `transform_rows` (the aligned
   full-resolution cloud); `copy_rows` (x, y, z out of a PointCloud2's records, `genreg_ros.pointcloud2`).
 
@@ -582,6 +583,49 @@ def copy_rows(view: np.ndarray) -> np.ndarray:
     return out
 
 
+@njit(**_OPTIONS)
+def voxel_centroids(points: np.ndarray, voxel: np.ndarray) -> np.ndarray:
+    """`preprocess.voxel_downsample` of finite (N, 3) points, bit for bit, in one pass: each point's voxel
+    (floor(p / voxel[0]) per axis, `voxel` of the points' dtype: numpy divides in that dtype) is looked up in an open-addressing hash table (linear probing, twice as many
+    slots as points, rounded up to a power of two), which numbers the voxels in their first appearance; the sums
+    run in input order (as `np.bincount`'s) and the centroids come out in that order, in the points' dtype."""
+    n, size = points.shape[0], voxel[0]
+    slots = 1
+    while slots < 2 * n:
+        slots *= 2
+    mask = slots - 1
+    table = np.full(slots, -1, dtype=np.int64)  # a slot's voxel number, -1: empty
+    keys = np.empty((n, 3), dtype=np.int64)  # each voxel's key, in order of appearance
+    sums = np.zeros((n, 3), dtype=np.float64)
+    counts = np.zeros(n, dtype=np.int64)
+    voxels = 0
+    for i in range(n):
+        kx = np.int64(math.floor(points[i, 0] / size))
+        ky = np.int64(math.floor(points[i, 1] / size))
+        kz = np.int64(math.floor(points[i, 2] / size))
+        h = ((kx * 73856093) ^ (ky * 19349663) ^ (kz * 83492791)) & mask
+        while True:
+            v = table[h]
+            if v < 0:
+                v = voxels
+                table[h] = v
+                keys[v, 0], keys[v, 1], keys[v, 2] = kx, ky, kz
+                voxels += 1
+                break
+            if keys[v, 0] == kx and keys[v, 1] == ky and keys[v, 2] == kz:
+                break
+            h = (h + 1) & mask
+        sums[v, 0] += points[i, 0]
+        sums[v, 1] += points[i, 1]
+        sums[v, 2] += points[i, 2]
+        counts[v] += 1
+    out = np.empty((voxels, 3), dtype=points.dtype)
+    for v in range(voxels):
+        for j in range(3):
+            out[v, j] = sums[v, j] / counts[v]
+    return out
+
+
 def compile_all() -> None:
     """Compile (or load from numba's cache) every kernel for the array types the pipeline passes, on tiny
     inputs: a cold compile takes about half a minute, a cached load about a second. `scripts/setup.sh` runs
@@ -609,6 +653,8 @@ def compile_all() -> None:
     plane_normals(cloud[0].astype(f64), graph[0])  # with cloud_mean and plane_normals_about
     weights = np.ones((1, 32))
     weighted_sets(np.cumsum(weights, axis=1), weights, rng.random((3, 1, 4)))
+    for dtype in (f32, f64):
+        voxel_centroids(cloud[0].astype(dtype), np.array([0.1], dtype=dtype))
 
 
 if __name__ == "__main__":

@@ -61,8 +61,22 @@ def crop_mask(points: np.ndarray, crop_min: np.ndarray, crop_max: np.ndarray) ->
 def voxel_downsample(points: np.ndarray, voxel_size: float) -> np.ndarray:
     """Centroid of the points in each occupied cubic voxel of edge `voxel_size` (grid anchored at 0).
 
-    Output order follows the voxels' first appearance in the input, so it is deterministic.
+    Output order follows the voxels' first appearance in the input, so it is deterministic. Finite float32 or
+    float64 points are voxelised by the compiled `kernels.voxel_centroids` (one pass, a hash table of the
+    voxels), others by `voxel_downsample_reference` (sorts), which gives the same centroids bit for bit.
     """
+    if voxel_size <= 0 or len(points) == 0:
+        return points.copy()
+    if points.dtype in (np.float32, np.float64) and np.isfinite(points).all():
+        from genreg_core import kernels  # numba and torch: not for the settings' importers of this module
+
+        return kernels.voxel_centroids(np.ascontiguousarray(points), np.array([voxel_size], dtype=points.dtype))
+    return voxel_downsample_reference(points, voxel_size)
+
+
+def voxel_downsample_reference(points: np.ndarray, voxel_size: float) -> np.ndarray:
+    """`voxel_downsample` by sorting the voxels' keys (numpy): the form for points the compiled kernel does not
+    take (other dtypes, non-finite rows) and the reference it is tested against."""
     if voxel_size <= 0 or len(points) == 0:
         return points.copy()
     scaled = points / voxel_size
