@@ -585,10 +585,11 @@ def copy_rows(view: np.ndarray) -> np.ndarray:
 
 @njit(**_OPTIONS)
 def voxel_centroids(points: np.ndarray, voxel: np.ndarray) -> np.ndarray:
-    """`preprocess.voxel_downsample` of finite (N, 3) points, bit for bit, in one pass: each point's voxel
-    (floor(p / voxel[0]) per axis, `voxel` of the points' dtype: numpy divides in that dtype) is looked up in an open-addressing hash table (linear probing, twice as many
-    slots as points, rounded up to a power of two), which numbers the voxels in their first appearance; the sums
-    run in input order (as `np.bincount`'s) and the centroids come out in that order, in the points' dtype."""
+    """`preprocess.voxel_downsample` of finite (N, 3) points, bit for bit, in one pass. Each point's voxel,
+    floor(p / voxel[0]) per axis (`voxel` in the points' dtype: numpy divides in that dtype), is looked up in
+    an open-addressing hash table (linear probing, twice as many slots as points, rounded up to a power of
+    two) that numbers the voxels in their first appearance; the sums run in input order (as `np.bincount`'s)
+    and the centroids come out in that order, in the points' dtype."""
     n, size = points.shape[0], voxel[0]
     slots = 1
     while slots < 2 * n:
