@@ -324,6 +324,12 @@ class LocalizationConfig:
     accept_whole: float = setting(0.9, "Without a guess, the whole map's pose also stands (no place search) when "
                                   "its confidence reaches this (1: places are searched unless the map is small).",
                                   low=0.0, high=1.0)
+    part_gap: float = setting(0.5, "Without a guess, a map in parts (rooms or floors mapped apart: its points "
+                              "joined where cells of this many scan radii touch) has each part of at least "
+                              "place_points points registered whole before places are searched (0: the map is "
+                              "one part).", low=0.0, high=100.0)
+    max_parts: int = setting(4, "A map in more parts than this (of at least place_points points) is registered "
+                             "as one.", low=1, high=64)
     place_spacing: float = setting(0.5, "Candidate places are centred on the occupied cells of a grid with this "
                                    "spacing, in scan radii.", low=0.05, high=10.0)
     place_radius: float = setting(1.2, "A candidate place is the map within this many scan radii of its centre.",

@@ -13,13 +13,15 @@ surfaces alike.
 
 Registrations against the map (`Registrar`) run without the refinement guard (`RefineConfig.guard_below`:
 its ICP from the scan's and the map's centroids put together is no pose in a map). Without a guess, the
-scan is first registered against the whole map; that pose stands when the map is
-not much larger than the scan (extent below `whole_map_ratio` x the scan's) or its confidence reaches
-`accept_whole`. Otherwise (a room larger than the view, a floor, a building: too few of the model's map
-samples lie where the scan is; MODEL_CARD "Map relocalisation") the map is cut into candidate places: the centres
-of occupied cells of a grid with spacing `place_spacing` x the scan's radius, each place the map points
-within `place_radius` x that radius of its centre, at most `place_points` of them (built on first use per
-radius, kept in memory and, with `cache_dir`, on disk by the map's content hash). The scan is registered
+scan is first registered against the whole map, or, when the map is in parts (rooms or floors mapped apart,
+more than `part_gap` scan radii from each other: `parts`), against each part, in the order of the scan's
+screening against each (below); a pose stands when its confidence reaches `accept_whole`, or when the map is not much larger than the scan (extent
+below `whole_map_ratio` x the scan's). Otherwise (a room larger than the view, a floor, a building: too few
+of the model's map samples lie where the scan is; MODEL_CARD "Map relocalisation") the map is cut into
+candidate places: the centres of occupied cells of a grid with spacing `place_spacing` x the scan's radius,
+each place the map points within `place_radius` x that radius of its centre, at most `place_points` of them
+(built on first use per radius, kept in memory and, with `cache_dir`, on disk by the map's content hash).
+The scan is registered
 against every place in batched `Registrar.register_many` calls at `screen_model_points` points (the same
 weights), unrefined (GenReg is rotation invariant: no orientation is searched); the best `candidates` by confidence are verified against a crop
 of the whole map around each (registration from the candidate's pose as the initial guess), and the most
@@ -73,6 +75,8 @@ from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
 from genreg_core.checkpoint import resized
@@ -128,13 +132,32 @@ def occupied_cells(points: np.ndarray, spacing: float) -> np.ndarray:
     """The distinct integer cells (K, 3) of a grid with this spacing that hold points, in lexicographic
     order (as np.unique(..., axis=0), by one integer key per cell: far faster on large maps, MODEL_CARD
     "Large maps")."""
+    return cells_of(points, spacing, rows=False)[0]
+
+
+def cells_of(points: np.ndarray, spacing: float, rows: bool = True) -> tuple[np.ndarray, np.ndarray | None]:
+    """`occupied_cells` and, with `rows`, each point's row among them."""
     cells = np.floor(points / spacing).astype(np.int64)
     low = cells.min(axis=0)
     size = cells.max(axis=0) - low + 1
     if float(np.prod(size.astype(np.float64))) >= 2.0 ** 62:
-        return np.unique(cells, axis=0)
-    keys = np.unique(((cells[:, 0] - low[0]) * size[1] + cells[:, 1] - low[1]) * size[2] + cells[:, 2] - low[2])
-    return np.stack([keys // (size[1] * size[2]), keys // size[2] % size[1], keys % size[2]], axis=1) + low
+        found = np.unique(cells, axis=0, return_inverse=rows)
+        return (found[0], found[1].ravel()) if rows else (found, None)
+    keys = ((cells[:, 0] - low[0]) * size[1] + cells[:, 1] - low[1]) * size[2] + cells[:, 2] - low[2]
+    keys, inverse = np.unique(keys, return_inverse=True) if rows else (np.unique(keys), None)
+    return np.stack([keys // (size[1] * size[2]), keys // size[2] % size[1], keys % size[2]], axis=1) + low, inverse
+
+
+def map_parts(points: np.ndarray, gap: float) -> np.ndarray:
+    """Each point's part: the points joined wherever their cells of a grid of size `gap` touch (face, edge
+    or corner), numbered by connected component (scipy's csgraph). Points in one part may lie up to 2
+    sqrt(3) `gap` apart; points in two lie at least `gap` apart."""
+    cells, inverse = cells_of(points, gap)
+    assert inverse is not None
+    pairs = cKDTree(cells).query_pairs(1.75, output_type="ndarray")  # the 26 neighbours lie within sqrt(3)
+    graph = coo_matrix((np.ones(len(pairs), dtype=bool), (pairs[:, 0], pairs[:, 1])), shape=(len(cells),) * 2)
+    _, labels = connected_components(graph, directed=False)
+    return labels[inverse]
 
 
 def mapped(path: Path) -> np.ndarray:
@@ -287,6 +310,7 @@ class MapLocalizer:
         _, self.extent = robust_extent(sample)
         self._key = content_key(self.map) if cache_dir is not None else ""
         self._places: dict[float, list[np.ndarray]] = {}  # scan radius -> the places' map rows
+        self._parts: dict[float, list[np.ndarray]] = {}  # scan radius -> the parts' points
         # candidates are screened without refinement (ranking only), then verified with the full profile
         cfg = self.registrar.config
         # the map's registrations run without the refinement guard: its ICP from the scan's and the map's
@@ -335,6 +359,20 @@ class MapLocalizer:
             if path is not None and cached is None:
                 write_places(path, self._places[radius])
         return self._places[radius]
+
+    def parts(self, radius: float) -> list[np.ndarray]:
+        """The map's parts for scans of this radius, each registered whole: the parts of `map_parts` at
+        `part_gap` x `radius` that hold at least `place_points` points, largest first; the whole map alone
+        when there are fewer than two or more than `max_parts` (built on first use per radius)."""
+        if radius not in self._parts:
+            c, self._parts[radius] = self.config, [self.map]
+            if c.part_gap > 0 and c.max_parts > 1:
+                labels = map_parts(self.map, c.part_gap * radius)
+                sizes = np.bincount(labels)
+                big = [k for k in np.argsort(-sizes, kind="stable") if sizes[k] >= c.place_points]
+                if 2 <= len(big) <= c.max_parts:
+                    self._parts[radius] = [self.map[labels == k] for k in big]
+        return self._parts[radius]
 
     def build_places(self, radius: float) -> list[np.ndarray]:
         """`places` built from the map (seeded: the same map gives the same places). When places are much
@@ -408,19 +446,27 @@ class MapLocalizer:
 
     def searched(self, scan: np.ndarray, geometry: tuple[np.ndarray, float, float]) -> list[RegistrationResult]:
         """The global results of a voxelised scan without a guess or an index (`geometry`: its `scan_geometry`),
-        each `judged`: its registration against the whole map and, unless that stands (a map not much larger
-        than the scan, or confident enough), the `candidates` best screened places that screened at
+        each `judged`: its registrations against the whole map (or its `parts`, in the order of the scan's
+        screening against each, until one is confident enough to stand) and, unless that stands (a map not much
+        larger than the scan, or confident enough), the `candidates` best screened places that screened at
         `verify_above` or more, verified against crops."""
         centroid, radius, extent = geometry
         c = self.config
-        whole = self.judged(self._mapper.register(scan, self.map), scan)
+        parts, wholes = self.parts(radius), list[RegistrationResult]()
+        if len(parts) > 1:  # the likeliest part first: by the scan's screening against each
+            screened = self.screen(scan, parts)
+            parts = [parts[k] for k in np.argsort([-r.confidence for r in screened], kind="stable")]
+        for part in parts:  # until a pose is confident enough to stand
+            wholes.append(self.judged(self._mapper.register(scan, part), scan))
+            if wholes[-1].confidence >= c.accept_whole:
+                return wholes
         places = self.places(radius)
-        if self.extent < c.whole_map_ratio * extent or whole.confidence >= c.accept_whole or not places:
-            return [whole]
+        if self.extent < c.whole_map_ratio * extent or not places:
+            return wholes
         screened = self.screen(scan, [self.map[rows] for rows in places])
         best = [k for k in sorted(range(len(screened)), key=lambda k: -screened[k].confidence)[: c.candidates]
                 if screened[k].confidence >= c.verify_above]
-        return [whole, *(self.judged(self.refined(scan, screened[k].transformation, apply_transform(
+        return [*wholes, *(self.judged(self.refined(scan, screened[k].transformation, apply_transform(
             screened[k].transformation, centroid[None])[0], radius), scan) for k in best)]
 
     @property
@@ -641,4 +687,4 @@ class MapLocalizer:
         return self._mapper.register(scan, target, guess)
 
 
-__all__ = ["TRACKING_CALIBRATION", "MapLocalizer", "median_spacing"]
+__all__ = ["TRACKING_CALIBRATION", "MapLocalizer", "map_parts", "median_spacing"]

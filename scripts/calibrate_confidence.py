@@ -43,7 +43,9 @@ buildings' twin rooms are; every pose of them wrong). Every candidate result of 
 (`MapLocalizer.searched`) is a row; a scan's rows share a fold (docs/reliability_7scenes_map.png).
 `check-map` localises the same sets of scans in the 200-frame training maps as in use (`MapLocalizer.localize`,
 no guess) and prints per set the scans placed (right at confidence >= 0.5), confidently wrong, and the median
-time: the training-side check of a change to map localisation or its model.
+time: the training-side check of a change to map localisation or its model; then again with each map beside
+its mirror image 3 m away (twin rooms mapped apart: a map in two parts), where the mirrored scans are the
+twin's, placed at the pose mirrored across.
 Held-out pairs: redkitchen frames 800-999 (30, 60, 90 apart, kidnapped), SUN3D (unseen; 20 apart,
 kidnapped); ModelNet40 test split, unseen categories (clean up to 180 deg; crops).
 """
@@ -345,9 +347,25 @@ def map_rows(per_map: int) -> Iterator[tuple[str, int, np.ndarray, bool]]:
                     yield name, scan_id, x, name != "mirrored" and ok(*transform_errors(result.transformation, truth))
 
 
+TWIN_GAP = 3.0  # check-map's twin rooms: the mirror image this many metres beyond the map's +x side
+
+
+def twin_rooms(room: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """A map of twin rooms mapped apart: `room` and its mirror image across the plane `TWIN_GAP` / 2 beyond
+    its largest x (x -> shift - x); and the 4x4 that maps a pose in the room of a scan mirrored in its camera
+    frame (`MIRROR`) to its pose in the twin (T -> S M T M: a proper rigid motion)."""
+    shift = 2.0 * float(room[:, 0].max()) + TWIN_GAP
+    mirror = np.diag([*MIRROR, 1.0])
+    to_twin = np.eye(4)
+    to_twin[0, 3] = shift
+    return np.concatenate([room, room * MIRROR + np.array([shift, 0.0, 0.0])]), to_twin @ mirror
+
+
 def check_map(model: str, per_map: int) -> None:
     """`check-map`: scans of the 200-frame training maps localised as in use (`MapLocalizer.localize`, no
-    guess): per set, placed (right at confidence >= 0.5), confident-wrong and the median time."""
+    guess): per set, placed (right at confidence >= 0.5), confident-wrong and the median time. Then the same
+    maps as twin rooms (`twin_rooms`: two parts, `LocalizationConfig.part_gap`), the mirrored scans there
+    being scans of the twin."""
     from genreg_core.localization import MapLocalizer
 
     if model != SCENE_MODEL:
@@ -355,21 +373,29 @@ def check_map(model: str, per_map: int) -> None:
     kitchen, counts = RGBDSequence.redkitchen(), {}
     _, ok = success(SCENE_MODEL)
     length = 200
-    for start in dict(MAP_STRETCHES)[length]:
-        loc = MapLocalizer(kitchen.fused(range(start, start + length, 10), stride=4))
-        for name, frames in map_sets(kitchen, start, length, per_map).items():
-            for i in tqdm(frames, desc=f"check {start}+{length} {name}", leave=False):
-                t0 = time.perf_counter()
-                result = loc.localize(map_scan(kitchen, i, name))
-                seconds = time.perf_counter() - t0
-                right = name != "mirrored" and ok(*transform_errors(result.transformation, kitchen.pose(i)))
-                confident = result.confidence >= GATE
-                counts.setdefault(name, []).append((confident and right, confident and not right, seconds))
+    for twins in (False, True):
+        for start in dict(MAP_STRETCHES)[length]:
+            room = kitchen.fused(range(start, start + length, 10), stride=4)
+            fused, to_twin = twin_rooms(room) if twins else (room, None)
+            loc = MapLocalizer(fused)
+            for name, frames in map_sets(kitchen, start, length, per_map).items():
+                key = f"{'twin rooms, ' if twins else ''}{name}"
+                for i in tqdm(frames, desc=f"check {start}+{length} {key}", leave=False):
+                    t0 = time.perf_counter()
+                    result = loc.localize(map_scan(kitchen, i, name))
+                    seconds = time.perf_counter() - t0
+                    truth = kitchen.pose(i)
+                    if to_twin is not None and name == "mirrored":
+                        truth = to_twin @ truth @ np.diag([*MIRROR, 1.0])
+                    right = (name != "mirrored" or twins) and ok(*transform_errors(result.transformation, truth))
+                    confident = result.confidence >= GATE
+                    counts.setdefault(key, []).append((confident and right, confident and not right, seconds))
     starts = ", ".join(map(str, dict(MAP_STRETCHES)[length]))
-    print(f"{model} global localisation in the 200-frame training maps ({starts}):")
+    print(f"{model} global localisation in the 200-frame training maps ({starts}), then as twin rooms "
+          f"(mirrored scans: scans of the twin):")
     for name, rows in counts.items():
         placed, wrong, seconds = (np.array(column) for column in zip(*rows, strict=True))
-        print(f"  {name:9s} placed {int(placed.sum())}/{len(rows)}  confident-wrong {int(wrong.sum())}  "
+        print(f"  {name:21s} placed {int(placed.sum())}/{len(rows)}  confident-wrong {int(wrong.sum())}  "
               f"median {1000 * np.median(seconds):.0f} ms")
 
 

@@ -11,6 +11,8 @@ import open3d as o3d
 import pytest
 import small_gicp
 import torch
+from hypothesis import given, settings
+from hypothesis import strategies as st
 from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
@@ -19,7 +21,7 @@ from genreg_core.config import SCENE_MODEL, LocalizationConfig
 from genreg_core.data.rgbd import RGBDSequence
 from genreg_core.errors import InvalidPointCloudError, NonFinitePointsError, TooFewPointsError
 from genreg_core.geometry import apply_transform, make_transform
-from genreg_core.localization import MapLocalizer
+from genreg_core.localization import MapLocalizer, map_parts
 from genreg_core.metrics import transform_errors
 from genreg_core.preprocess import voxel_downsample
 from genreg_core.registration import Registrar
@@ -309,3 +311,39 @@ def test_a_scan_of_the_rooms_mirror_image_is_not_accepted():
     assert re < 2.0 and te < 0.05 and placed.confidence >= 0.5
     mirrored = loc.localize(points * np.array([-1.0, 1.0, 1.0], dtype=points.dtype))
     assert mirrored.confidence < 0.5
+
+
+@settings(max_examples=30, deadline=None)
+@given(st.integers(2, 5), st.floats(0.05, 0.5), st.integers(0, 2**32 - 1))
+def test_map_parts_are_the_clusters_further_apart_than_the_gap(count, gap, seed):
+    """Clusters of points spaced well below `gap`, their boxes more than 2 sqrt(3) `gap` apart (so no two
+    touching cells hold points of two clusters): each cluster is one part, and no part holds two."""
+    rng = np.random.default_rng(seed)
+    size, step = 4 * gap, gap / 4
+    offsets = np.arange(count)[:, None] * np.array([size + 4 * gap, 0.0, 0.0]) + rng.normal(0, 10, 3)
+    grid = np.stack(np.meshgrid(*[np.arange(0, size, step)] * 2, [0.0]), -1).reshape(-1, 3)
+    clusters = [grid + offset + rng.uniform(-step / 4, step / 4, grid.shape) for offset in offsets]
+    labels = map_parts(np.concatenate(clusters), gap)
+    truth = np.repeat(np.arange(count), [len(c) for c in clusters])
+    assert len(np.unique(labels)) == count
+    assert all(len(np.unique(labels[truth == k])) == 1 for k in range(count))
+
+
+def test_a_map_of_twin_rooms_mapped_apart_registers_each_room_whole(kitchen, monkeypatch):
+    """The map and its mirror image 3 m beyond its +x side (twin rooms across a wall, mapped apart): two
+    parts, each the room's points. A scan of either room is placed from the parts' registrations, with no
+    place search; the mirrored scan's recorded pose is the twin's (mirror, shift and mirror back)."""
+    seq, loc = kitchen
+    shift = 2 * loc.map[:, 0].max() + 3.0
+    twin_map = np.concatenate([loc.map, loc.map * np.array([-1.0, 1.0, 1.0]) + np.array([shift, 0.0, 0.0])])
+    twins = MapLocalizer(twin_map, registrar=loc.registrar, config=LocalizationConfig(voxel_size=loc.voxel_size))
+    points = seq.points(855, stride=STRIDE)
+    radius = twins.scan_geometry(voxel_downsample(points, twins.voxel_size))[1]
+    assert [len(part) for part in twins.parts(radius)] == [len(loc.map)] * 2
+    mirror = np.diag([-1.0, 1.0, 1.0, 1.0])
+    twin_pose = make_transform(np.eye(3), np.array([shift, 0.0, 0.0])) @ mirror @ seq.pose(855) @ mirror
+    monkeypatch.setattr(MapLocalizer, "places", lambda *_: pytest.fail("places were searched"))
+    for scan, truth in ((points, seq.pose(855)), (points * np.array([-1.0, 1.0, 1.0], np.float32), twin_pose)):
+        result = twins.localize(scan)
+        re, te = transform_errors(result.transformation, truth)
+        assert re < 2.0 and te < 0.05 and result.confidence >= 0.5, (re, te, result.confidence)
