@@ -15,16 +15,16 @@ Registrations against the map (`Registrar`) run without the refinement guard (`R
 its ICP from the scan's and the map's centroids put together is no pose in a map). Without a guess, the
 scan is first registered against the whole map, or, when the map is in parts (rooms or floors mapped apart,
 more than `part_gap` scan radii from each other: `parts`), against each part, in the order of the scan's
-screening against each (below); a pose stands when its confidence reaches `accept_whole`, or when the map is not much larger than the scan (extent
-below `whole_map_ratio` x the scan's). Otherwise (a room larger than the view, a floor, a building: too few
-of the model's map samples lie where the scan is; MODEL_CARD "Map relocalisation") the map is cut into
-candidate places: the centres of occupied cells of a grid with spacing `place_spacing` x the scan's radius,
-each place the map points within `place_radius` x that radius of its centre, at most `place_points` of them
-(built on first use per radius, kept in memory and, with `cache_dir`, on disk by the map's content hash).
-The scan is registered
-against every place in batched `Registrar.register_many` calls at `screen_model_points` points (the same
-weights), unrefined (GenReg is rotation invariant: no orientation is searched); the best `candidates` by confidence are verified against a crop
-of the whole map around each (registration from the candidate's pose as the initial guess), and the most
+screening against each (below); a pose stands when its confidence reaches `accept_whole`, or when the map
+is not much larger than the scan (extent below `whole_map_ratio` x the scan's). Otherwise (a room larger
+than the view, a floor, a building: too few of the model's map samples lie where the scan is; MODEL_CARD
+"Map relocalisation") the map is cut into candidate places: the centres of occupied cells of a grid with
+spacing `place_spacing` x the scan's radius, each place the map points within `place_radius` x that radius
+of its centre, at most `place_points` of them (built on first use per radius, kept in memory and, with
+`cache_dir`, on disk by the map's content hash). The scan is registered against every place in batched
+`Registrar.register_many` calls at `screen_model_points` points (the same weights), unrefined (GenReg is
+rotation invariant: no orientation is searched); the best `candidates` by confidence are verified against
+a crop of the whole map around each (registration from the candidate's pose as the initial guess), and the most
 confident pose, the whole map's included, wins, bounded by its distinct rivals (below). Each of these global
 results is `judged` first: its confidence becomes the calibration's map model's (`MAP_CALIBRATION`, fitted
 on training maps with scans on and beyond them: `scripts/calibrate_confidence.py fit-map`) over its
@@ -150,8 +150,9 @@ def cells_of(points: np.ndarray, spacing: float, rows: bool = True) -> tuple[np.
 
 def map_parts(points: np.ndarray, gap: float) -> np.ndarray:
     """Each point's part: the points joined wherever their cells of a grid of size `gap` touch (face, edge
-    or corner), numbered by connected component (scipy's csgraph). Points in one part may lie up to 2
-    sqrt(3) `gap` apart; points in two lie at least `gap` apart."""
+    or corner), numbered by connected component (scipy's csgraph). Points less than `gap` apart are always
+    in one part, so points in two parts lie at least `gap` apart (and points up to 2 sqrt(3) `gap` apart may
+    be joined)."""
     cells, inverse = cells_of(points, gap)
     assert inverse is not None
     pairs = cKDTree(cells).query_pairs(1.75, output_type="ndarray")  # the 26 neighbours lie within sqrt(3)
