@@ -21,7 +21,7 @@ from genreg_core.config import SCENE_MODEL, LocalizationConfig
 from genreg_core.data.rgbd import RGBDSequence
 from genreg_core.errors import InvalidPointCloudError, NonFinitePointsError, TooFewPointsError
 from genreg_core.geometry import apply_transform, make_transform
-from genreg_core.localization import MapLocalizer, map_parts
+from genreg_core.localization import MapLocalizer, cells_of, map_parts, occupied_cells
 from genreg_core.metrics import transform_errors
 from genreg_core.preprocess import voxel_downsample
 from genreg_core.registration import Registrar
@@ -311,6 +311,21 @@ def test_a_scan_of_the_rooms_mirror_image_is_not_accepted():
     assert re < 2.0 and te < 0.05 and placed.confidence >= 0.5
     mirrored = loc.localize(points * np.array([-1.0, 1.0, 1.0], dtype=points.dtype))
     assert mirrored.confidence < 0.5
+
+
+@settings(max_examples=40, deadline=None)
+@given(st.integers(1, 500), st.floats(0.01, 2.0), st.sampled_from([1.0, 1e3, 1e15]), st.integers(0, 2**32 - 1))
+def test_cells_of_points_are_numpys_unique_cells_and_inverse(count, spacing, scale, seed):
+    """`cells_of` (one integer key per cell; a grid too large for one key falls back to np.unique over rows)
+    against np.unique of the floored coordinates, with each point's row; `occupied_cells` is its first half."""
+    points = np.random.default_rng(seed).uniform(-scale, scale, (count, 3))
+    points[count // 2:] = points[: count - count // 2]  # repeated points share a cell
+    floored = np.floor(points / spacing).astype(np.int64)
+    cells, rows = np.unique(floored, axis=0, return_inverse=True)
+    got, got_rows = cells_of(points, spacing)
+    np.testing.assert_array_equal(got, cells)
+    np.testing.assert_array_equal(got_rows, rows.ravel())
+    np.testing.assert_array_equal(occupied_cells(points, spacing), cells)
 
 
 @settings(max_examples=30, deadline=None)
