@@ -325,9 +325,10 @@ class LocalizationConfig:
                                   "its confidence reaches this (1: places are searched unless the map is small).",
                                   low=0.0, high=1.0)
     part_gap: float = setting(0.5, "Without a guess, a map in parts (rooms or floors mapped apart: its points "
-                              "joined where cells of this many scan radii touch) has each part of at least "
-                              "place_points points registered whole before places are searched (0: the map is "
-                              "one part).", low=0.0, high=100.0)
+                              "joined where cells of this many scan radii touch) has its parts of at least "
+                              "place_points points registered whole, in the order of the scan's screening against "
+                              "each, until a pose stands, before places are searched (0: the map is one part).",
+                              low=0.0, high=100.0)
     max_parts: int = setting(4, "A map in more parts than this (of at least place_points points) is registered "
                              "as one.", low=1, high=64)
     place_spacing: float = setting(0.5, "Candidate places are centred on the occupied cells of a grid with this "
