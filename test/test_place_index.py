@@ -85,26 +85,27 @@ def test_the_smallest_values_are_those_a_stable_sort_puts_first(values: list[int
     np.testing.assert_array_equal(smallest(array, count), np.argsort(array, kind="stable")[:count])
 
 
-def test_descriptor_bins_hold_the_highest_point_of_each_polar_bin_and_nothing_behind_a_wall() -> None:
+def test_descriptor_bins_hold_structure_above_the_ground_and_nothing_behind_a_wall() -> None:
     g = IndexGeometry(radius=10.0, rings=5, sectors=8, band=2.0, cell=0.25, ground_cells=3)
     rng = np.random.default_rng(2)
     ground = np.column_stack([rng.uniform(-12, 12, (40_000, 2)), np.zeros(40_000)])  # flat ground at z = 0
     # one post of known height in each of a few bins, well inside them (away from bin edges)
     posts = []
-    # 2.6 and 2.5: above the band (walls); the 1.0 post stands behind the 2.5 one in its sector
-    for ring, sector, height in [(1, 0, 0.7), (3, 2, 1.5), (4, 5, 1.9), (2, 7, 2.6), (1, 3, 2.5), (3, 3, 1.0)]:
+    # 2.6 and 2.5: above the band (walls); the 1.0 post stands behind the 2.5 one in its sector; 0.2: a kerb,
+    # below free_below (0.3): no structure
+    for ring, sector, height in [(1, 0, 0.7), (3, 2, 1.5), (4, 5, 1.9), (2, 7, 2.6), (1, 3, 2.5), (3, 3, 1.0),
+                                 (2, 1, 0.2)]:
         r = (ring + 0.5) * g.radius / g.rings
         a = -np.pi + (sector + 0.5) * 2 * np.pi / g.sectors
         z = np.linspace(0.0, height, 30)
         posts.append(np.column_stack([np.full(30, r * np.cos(a)), np.full(30, r * np.sin(a)), z]))
     cloud = np.vstack([ground, *posts])
     raster = height_image(cloud, g, margin=g.radius)
-    got = describe(raster, raster.cells(np.zeros((1, 2))), Stencil(g), g.band)[0]
+    got = describe(raster, raster.cells(np.zeros((1, 2))), Stencil(g), g.band, g.free_below)[0]
     expected = np.zeros((g.rings, g.sectors))
-    expected[1, 0], expected[3, 2], expected[4, 5] = 0.7, 1.5, 1.9
-    expected[2, 7] = max(z for z in np.linspace(0.0, 2.6, 30) if z <= 2.0)  # its highest point within the band
-    expected[1, 3] = max(z for z in np.linspace(0.0, 2.5, 30) if z <= 2.0)  # a wall: (3, 3) behind it stays 0
-    np.testing.assert_allclose(got, expected, atol=1e-5)
+    expected[1, 0] = expected[3, 2] = expected[4, 5] = expected[2, 7] = 1.0
+    expected[1, 3] = 1.0  # a wall: (3, 3) behind it stays 0
+    np.testing.assert_array_equal(got, expected)
 
 
 def test_retrieval_finds_the_place_and_heading_of_held_out_scans(street: tuple[Scene, np.ndarray]) -> None:
