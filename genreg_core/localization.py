@@ -33,8 +33,8 @@ registration's probability and the share of the map its pose says the scan saw t
 at its place, but the slid pose puts the map's walls in front of surfaces the scan saw.
 
 A gravity-aligned map (z up, as LiDAR maps are) can instead be searched through its place index
-(`retrieve` > 0; `genreg_core.place_index`, built once per map and cached with it): the scan's polar height
-image is compared with every place's at every heading, and the `retrieve` best places and headings are
+(`retrieve` > 0; `genreg_core.place_index`, built once per map and cached with it): the scan's polar
+occupancy image is compared with every place's at every heading, and the `retrieve` best places and headings are
 aligned by GICP against the whole map (prepared once, `whole_map`) and verified as tracked scans are; the
 most confident wins. Neither the whole-map registration nor the place screening runs then. Whenever several
 results are verified for one scan, a distinct pose among them is the chosen one's rival (`chosen`): two
@@ -85,7 +85,7 @@ from genreg_core.config import SCENE_MODEL, SCENE_REGISTRATION, LocalizationConf
 from genreg_core.errors import ConfigError, TooFewPointsError
 from genreg_core.geometry import apply_transform
 from genreg_core.place_index import VERSION as INDEX_VERSION
-from genreg_core.place_index import IndexGeometry, PlaceIndex, hit_pose
+from genreg_core.place_index import Hit, IndexGeometry, PlaceIndex, hit_pose
 from genreg_core.prepare import check_transform, robust_extent, validate_cloud
 from genreg_core.preprocess import voxel_downsample
 from genreg_core.refine import GICPTarget, VoxelTarget, gicp_target
@@ -107,6 +107,9 @@ SPACING_SAMPLES = 20_000  # the map's resolution is the median nearest-neighbour
 RADIUS_QUANTILE = 0.9  # a scan's radius: this quantile of its points' distances from their centroid
 PLACE_CHUNK = 256  # place centres searched at once (bounds the memory of the neighbour lists)
 EXTENT_SAMPLES = 200_000  # the map's robust extent from this many of its points
+LOOKALIKE_SPACINGS = 6.0  # a look-alike place (`MapLocalizer.unlike`) is at least this many index spacings from
+# the pose: on the training campuses, places 4-6 m away told roads (descriptor margins >= 0.058) from corridors
+# (<= 0.054) alike, and nearer ones are the pose's own neighbours
 
 
 def median_spacing(points: np.ndarray, samples: int = SPACING_SAMPLES, seed: int = 0,
@@ -146,6 +149,23 @@ def cells_of(points: np.ndarray, spacing: float, rows: bool = True) -> tuple[np.
     keys = ((cells[:, 0] - low[0]) * size[1] + cells[:, 1] - low[1]) * size[2] + cells[:, 2] - low[2]
     keys, inverse = np.unique(keys, return_inverse=True) if rows else (np.unique(keys), None)
     return np.stack([keys // (size[1] * size[2]), keys // size[2] % size[1], keys % size[2]], axis=1) + low, inverse
+
+
+def rivalled(result: RegistrationResult, p: float, position: np.ndarray, what: str) -> RegistrationResult:
+    """`result` with a distinct rival at `position` (map frame) of probability `p`: two distinct poses cannot
+    both be right, so its confidence is at most 1 - p (`below_rival`); the rival is named among its
+    unconstrained motions ("translation along (x, y, z) to {what} d m away") and its offset widens the
+    covariance as a mixture of the two poses would (p (1 - p) d d^T on the translation block)."""
+    offset = np.asarray(position, dtype=np.float64) - result.transformation[:3, 3]
+    distance = float(np.linalg.norm(offset))
+    covariance = None if result.covariance is None else result.covariance.copy()
+    if covariance is not None:
+        covariance[:3, :3] += p * (1.0 - p) * np.outer(offset, offset)
+    u = offset / max(distance, 1e-12)
+    u = u if u[np.argmax(np.abs(u))] > 0 else -u
+    slide = f"translation along ({u[0]:.2f}, {u[1]:.2f}, {u[2]:.2f}) to {what} {distance:.2f} m away"
+    return replace(result, confidence=below_rival(result.confidence, p), covariance=covariance,
+                   unconstrained=(*result.unconstrained, slide))
 
 
 def map_parts(points: np.ndarray, gap: float) -> np.ndarray:
@@ -623,7 +643,7 @@ class MapLocalizer:
         results = [r for k in kept if (r := self.track(scan, coarse[k], local=whole, iterations=iterations)) is not None]
         if not results:  # nothing retrieved near enough to the map to align: the whole map from the identity
             results = [self.track(scan, np.eye(4), local=whole) or self._mapper.register(scan, self.map)]
-        best = self.chosen(results)
+        best = self.unlike(self.chosen(results), hits)
         best.timings = {"retrieve": t1 - t0, "screen": t2 - t1, "refine": time.perf_counter() - t2,
                         "total": time.perf_counter() - t0}
         return best
@@ -661,16 +681,26 @@ class MapLocalizer:
         p = rival.confidence
         if p <= 1.0 - best.confidence and p < best.confidence / 2:  # it neither bounds nor rivals the pose
             return best
-        offset = rival.transformation[:3, 3] - best.transformation[:3, 3]
-        distance = float(np.linalg.norm(offset))
-        covariance = None if best.covariance is None else best.covariance.copy()
-        if covariance is not None:
-            covariance[:3, :3] += p * (1.0 - p) * np.outer(offset, offset)
-        u = offset / max(distance, 1e-12)
-        u = u if u[np.argmax(np.abs(u))] > 0 else -u
-        slide = f"translation along ({u[0]:.2f}, {u[1]:.2f}, {u[2]:.2f}) to a rival pose {distance:.2f} m away"
-        return replace(best, confidence=below_rival(best.confidence, p), covariance=covariance,
-                       unconstrained=(*best.unconstrained, slide))
+        return rivalled(best, p, rival.transformation[:3, 3], "a rival pose")
+
+    def unlike(self, result: RegistrationResult, hits: Sequence[Hit]) -> RegistrationResult:
+        """The place index's result bounded by a look-alike place: a retrieved place at least
+        `LOOKALIKE_SPACINGS` index spacings from the pose whose descriptor distance is within
+        `lookalike_margin` of the best hit's. The index cannot tell the two apart, and where it cannot
+        (corridors of one building) GICP seats a scan about as well at either, so the place counts as a rival
+        as probable as the pose (`rivalled`) even when none of the verified candidates went there."""
+        margin = self.config.lookalike_margin
+        if margin <= 0 or not hits:
+            return result
+        best = min(h.distance for h in hits)
+        reach = LOOKALIKE_SPACINGS * self.config.index_spacing
+        xy = result.transformation[:2, 3]
+        alike = [h for h in hits if h.distance <= best + margin and np.linalg.norm(h.centre[:2] - xy) >= reach]
+        if not alike:
+            return result
+        place = min(alike, key=lambda h: h.distance).centre
+        return rivalled(result, result.confidence, np.array([place[0], place[1], result.transformation[2, 3]]),
+                        "a look-alike place")
 
     def screen(self, scan: np.ndarray, places: Sequence[np.ndarray]) -> list[RegistrationResult]:
         """The scan registered against every place (point sets), unrefined, in batches of `batch_size`."""

@@ -5,11 +5,13 @@ retrieval of the few places (and headings) a scan is likely taken from.
     hits = index.retrieve(scan_xyz, count=8)                # [Hit(centre, yaw, distance, ground), ...]
 
 A place is a point where a sensor could stand: the centre of a cell of a horizontal grid (`spacing` m)
-that holds ground and no obstacle. Its descriptor is a polar height image of the map around it (Scan
-Context, Kim and Kim 2018): `rings` x `sectors` bins out to `radius` m, each the highest point in the
-bin between the ground and `band` m above it (taller structure - ceilings, canopies - is left out, so a
-facade, a wall and a parked car read the same from any height of sensor), and nothing behind a wall
-(what a sensor at the place would not see: the next corridor, the street behind a facade). Heights are above the local
+that holds ground and no obstacle. Its descriptor is a polar occupancy image of the map around it (after
+Scan Context, Kim and Kim 2018, whose bins hold heights): `rings` x `sectors` bins out to `radius` m, each
+1 where something stands between `free_below` and `band` m above the ground (taller structure - ceilings,
+canopies - is left out), and nothing behind a wall (what a sensor at the place would not see: the next
+corridor, the street behind a facade; a wall is structure that reaches the band's top). Occupancy rather
+than height, because a sensor sees less of a wall's height near it than a map fused from many poses holds:
+a floor robot's scan shows the walls beside it up to about a metre. Heights are above the local
 ground: the lowest point within a cell's neighbourhood (`ground_cells`). A scan's descriptor is the same
 image around its origin, the sensor, in its own frame, whose z axis must point up (REP-103: a LiDAR on a
 robot base; within about 10 deg). Both are computed by one function (`height_image`, `describe`) on a
