@@ -5,6 +5,8 @@ position along it one period apart looks the same: no pose may be confident ther
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 from hypothesis import given
@@ -13,9 +15,10 @@ from hypothesis import strategies as st
 from genreg_core.config import LocalizationConfig
 from genreg_core.data.synthetic_lidar import LidarSensor, Scene, lidar_scan, sensor_pose, street_scene
 from genreg_core.geometry import apply_transform
-from genreg_core.localization import MapLocalizer
+from genreg_core.localization import LOOKALIKE_SPACINGS, MapLocalizer
 from genreg_core.metrics import transform_errors
 from genreg_core.place_index import (
+    Hit,
     IndexGeometry,
     PlaceIndex,
     Stencil,
@@ -236,3 +239,32 @@ def test_a_scan_no_retrieved_place_fits_is_not_slid_and_not_confident(street: tu
         result = loc.localize(lidar_scan(scene, T, rng, SENSOR).points)
         re, te = transform_errors(result.transformation, T)
         assert re < PLACED_RE_DEG and te < PLACED_TE_M and result.confidence >= 0.5, (re, te, result.confidence)
+
+
+def test_a_retrieved_look_alike_place_bounds_the_confidence_and_is_named(street: tuple[Scene, np.ndarray]) -> None:
+    scene, map_xyz = street
+    loc = MapLocalizer(map_xyz, config=LocalizationConfig(retrieve=8, map_voxel=0.2))
+    rng = np.random.default_rng(12)
+    T = sensor_pose(20.0, 0.5, 1.8, 0.4)
+    result = loc.localize(lidar_scan(scene, T, rng, SENSOR).points)
+    re, te = transform_errors(result.transformation, T)
+    assert re < PLACED_RE_DEG and te < PLACED_TE_M and result.confidence >= 0.5
+    p, at = result.confidence, result.transformation[:3, 3]
+    margin, reach = loc.config.lookalike_margin, LOOKALIKE_SPACINGS * loc.config.index_spacing
+
+    def hit(dx: float, distance: float) -> Hit:
+        return Hit(np.array([at[0] + dx, at[1], 0.0]), 0.4, distance)
+
+    own = [hit(0.0, 0.50), hit(1.0, 0.51)]  # the pose's place and its neighbour
+    # a place further than the reach, its descriptor within the margin of the best: a look-alike
+    alike = loc.unlike(result, [*own, hit(reach + 4.0, 0.50 + 0.9 * margin)])
+    assert alike.confidence == pytest.approx(1.0 - p)  # as probable as the pose: at most 1 - p
+    assert alike.unconstrained[-1] == f"translation along (1.00, 0.00, 0.00) to a look-alike place {reach + 4.0:.2f} m away"
+    widened = alike.covariance[:3, :3] - result.covariance[:3, :3]
+    np.testing.assert_allclose(widened, p * (1 - p) * np.diag([(reach + 4.0) ** 2, 0.0, 0.0]), atol=1e-9)
+    # not a look-alike: beyond the margin, or within the reach (the pose's own neighbourhood), or the rule off
+    for hits, config in (([*own, hit(reach + 4.0, 0.50 + 1.1 * margin)], loc.config),
+                         ([*own, hit(reach - 0.5, 0.50)], loc.config),
+                         ([*own, hit(reach + 4.0, 0.50)], replace(loc.config, lookalike_margin=0.0))):
+        loc.config = config
+        assert loc.unlike(result, hits) is result
