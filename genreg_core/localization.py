@@ -33,8 +33,8 @@ registration's probability and the share of the map its pose says the scan saw t
 at its place, but the slid pose puts the map's walls in front of surfaces the scan saw.
 
 A gravity-aligned map (z up, as LiDAR maps are) can instead be searched through its place index
-(`retrieve` > 0; `genreg_core.place_index`, built once per map and cached with it): the scan's polar
-occupancy image is compared with every place's at every heading, and the `retrieve` best places and headings are
+(`retrieve` > 0; `genreg_core.place_index`, built once per map and cached with it): the scan's polar height
+image is compared with every place's at every heading, and the `retrieve` best places and headings are
 aligned by GICP against the whole map (prepared once, `whole_map`) and verified as tracked scans are; the
 most confident wins. Neither the whole-map registration nor the place screening runs then. Whenever several
 results are verified for one scan, a distinct pose among them is the chosen one's rival (`chosen`): two
@@ -107,9 +107,9 @@ SPACING_SAMPLES = 20_000  # the map's resolution is the median nearest-neighbour
 RADIUS_QUANTILE = 0.9  # a scan's radius: this quantile of its points' distances from their centroid
 PLACE_CHUNK = 256  # place centres searched at once (bounds the memory of the neighbour lists)
 EXTENT_SAMPLES = 200_000  # the map's robust extent from this many of its points
-LOOKALIKE_SPACINGS = 6.0  # a look-alike place (`MapLocalizer.unlike`) is at least this many index spacings from
-# the pose: on the training campuses, places 4-6 m away told roads (descriptor margins >= 0.058) from corridors
-# (<= 0.054) alike, and nearer ones are the pose's own neighbours
+LOOKALIKE_SPACINGS = 6.0  # a look-alike place (`MapLocalizer.lookalike`) is at least this many index spacings
+# from the fittest candidate: on the training campuses, places 4-8 m away told the confidently wrong corridor
+# scans (descriptor margins <= 0.027) from road scans (>= 0.033) alike; nearer ones are its own neighbours
 
 
 def median_spacing(points: np.ndarray, samples: int = SPACING_SAMPLES, seed: int = 0,
@@ -638,12 +638,14 @@ class MapLocalizer:
             if len(kept) < c.candidates and all(distinct_poses(coarse[k], coarse[j], separation,
                                                                c.rival_distance * voxel) for j in kept):
                 kept.append(int(k))
+        if kept and (k := self.lookalike(hits, coarse, kept)) is not None:
+            kept.append(k)  # verified too: if the scan seats there as well, it is the chosen pose's rival
         t2 = time.perf_counter()
         iterations = c.unfit_iterations if unfit else c.track_iterations
         results = [r for k in kept if (r := self.track(scan, coarse[k], local=whole, iterations=iterations)) is not None]
         if not results:  # nothing retrieved near enough to the map to align: the whole map from the identity
             results = [self.track(scan, np.eye(4), local=whole) or self._mapper.register(scan, self.map)]
-        best = self.unlike(self.chosen(results), hits)
+        best = self.chosen(results)
         best.timings = {"retrieve": t1 - t0, "screen": t2 - t1, "refine": time.perf_counter() - t2,
                         "total": time.perf_counter() - t0}
         return best
@@ -683,24 +685,25 @@ class MapLocalizer:
             return best
         return rivalled(best, p, rival.transformation[:3, 3], "a rival pose")
 
-    def unlike(self, result: RegistrationResult, hits: Sequence[Hit]) -> RegistrationResult:
-        """The place index's result bounded by a look-alike place: a retrieved place at least
-        `LOOKALIKE_SPACINGS` index spacings from the pose whose descriptor distance is within
-        `lookalike_margin` of the best hit's. The index cannot tell the two apart, and where it cannot
-        (corridors of one building) GICP seats a scan about as well at either, so the place counts as a rival
-        as probable as the pose (`rivalled`) even when none of the verified candidates went there."""
+    def lookalike(self, hits: Sequence[Hit], coarse: Sequence[np.ndarray], kept: Sequence[int]) -> int | None:
+        """The retrieved place the index cannot tell from the fittest candidate's, if any: the hit (its coarse
+        pose's row in `coarse`, hits first) at least `LOOKALIKE_SPACINGS` index spacings from the fittest kept
+        pose, distinct from every kept one, whose descriptor distance is within `lookalike_margin` of the best
+        hit's; the nearest in descriptor of them. The corridors of one building look alike to the index, and
+        the scan seats about as well in either; verified, such a place bounds the chosen pose as its rival
+        even when no fitter candidate went there."""
         margin = self.config.lookalike_margin
         if margin <= 0 or not hits:
-            return result
+            return None
         best = min(h.distance for h in hits)
         reach = LOOKALIKE_SPACINGS * self.config.index_spacing
-        xy = result.transformation[:2, 3]
-        alike = [h for h in hits if h.distance <= best + margin and np.linalg.norm(h.centre[:2] - xy) >= reach]
-        if not alike:
-            return result
-        place = min(alike, key=lambda h: h.distance).centre
-        return rivalled(result, result.confidence, np.array([place[0], place[1], result.transformation[2, 3]]),
-                        "a look-alike place")
+        separation = np.radians(self.registrar.config.pdsac.mode_separation)
+        xy = coarse[kept[0]][:2, 3]
+        alike = [k for k, h in enumerate(hits) if h.distance <= best + margin
+                 and np.linalg.norm(h.centre[:2] - xy) >= reach
+                 and all(distinct_poses(coarse[k], coarse[j], separation, self.config.rival_distance * self.voxel_size)
+                         for j in kept)]
+        return min(alike, key=lambda k: hits[k].distance) if alike else None
 
     def screen(self, scan: np.ndarray, places: Sequence[np.ndarray]) -> list[RegistrationResult]:
         """The scan registered against every place (point sets), unrefined, in batches of `batch_size`."""

@@ -5,13 +5,11 @@ retrieval of the few places (and headings) a scan is likely taken from.
     hits = index.retrieve(scan_xyz, count=8)                # [Hit(centre, yaw, distance, ground), ...]
 
 A place is a point where a sensor could stand: the centre of a cell of a horizontal grid (`spacing` m)
-that holds ground and no obstacle. Its descriptor is a polar occupancy image of the map around it (after
-Scan Context, Kim and Kim 2018, whose bins hold heights): `rings` x `sectors` bins out to `radius` m, each
-1 where something stands between `free_below` and `band` m above the ground (taller structure - ceilings,
-canopies - is left out), and nothing behind a wall (what a sensor at the place would not see: the next
-corridor, the street behind a facade; a wall is structure that reaches the band's top). Occupancy rather
-than height, because a sensor sees less of a wall's height near it than a map fused from many poses holds:
-a floor robot's scan shows the walls beside it up to about a metre. Heights are above the local
+that holds ground and no obstacle. Its descriptor is a polar height image of the map around it (Scan
+Context, Kim and Kim 2018): `rings` x `sectors` bins out to `radius` m, each the highest point in the
+bin between the ground and `band` m above it (taller structure - ceilings, canopies - is left out, so a
+facade, a wall and a parked car read the same from any height of sensor), and nothing behind a wall
+(what a sensor at the place would not see: the next corridor, the street behind a facade). Heights are above the local
 ground: the lowest point within a cell's neighbourhood (`ground_cells`). A scan's descriptor is the same
 image around its origin, the sensor, in its own frame, whose z axis must point up (REP-103: a LiDAR on a
 robot base; within about 10 deg). Both are computed by one function (`height_image`, `describe`) on a
@@ -41,7 +39,7 @@ from genreg_core.errors import TooFewPointsError
 EMPTY = np.float32(np.inf)  # a raster cell without points
 GROUND_REACH = 15.0  # a scan's ground under its sensor is estimated from the cells within this many metres
 GROUND_QUANTILE = 0.2  # ... as this quantile of their local ground
-VERSION = 5  # of the descriptors and their spectra's layout: part of a cached index's name (a change makes
+VERSION = 4  # of the descriptors and their spectra's layout: part of a cached index's name (a change makes
 # caches stale)
 BLOCKING = 0.95  # a descriptor bin this high (a share of the band) is a wall: the bins behind it are hidden
 
@@ -122,15 +120,12 @@ class Stencil:
         self.reach = reach
 
 
-def describe(raster: Raster, cells: np.ndarray, stencil: Stencil, band: float, structure: float,
-             chunk: int = 256) -> np.ndarray:
-    """(K, rings, sectors) float32 descriptors of places at raster `cells` (K, 2): per polar bin 1 where
-    something stands higher than `structure` above the ground, else 0 (no structure, or nothing seen), and 0
-    behind a wall: a bin whose highest point reaches the band's top (`BLOCKING` x `band`: a wall or a facade,
-    not a parked car) hides the farther bins of its sector, as it hides them from a sensor there (the map
-    holds what the sensor cannot see from the place: other corridors, the next street). Occupancy, not
-    height: a sensor low in a corridor sees the walls beside it only up to a metre, where the map, fused
-    from far along the corridor, holds them to the band's top."""
+def describe(raster: Raster, cells: np.ndarray, stencil: Stencil, band: float, chunk: int = 256) -> np.ndarray:
+    """(K, rings, sectors) float32 descriptors of places at raster `cells` (K, 2): per polar bin the highest
+    point above the ground (0 where the bin holds no structure or nothing was seen), and 0 behind a wall: a
+    bin whose structure reaches the band's top (`BLOCKING` x `band`: a wall or a facade, not a parked car)
+    hides the farther bins of its sector, as it hides them from a sensor there (the map holds what the
+    sensor cannot see from the place: other corridors, the next street)."""
     padded = np.pad(np.maximum(raster.height, 0.0), stencil.reach)
     out = np.zeros((len(cells), stencil.shape[0] * stencil.shape[1]), np.float32)
     for start in range(0, len(cells), chunk):
@@ -139,9 +134,8 @@ def describe(raster: Raster, cells: np.ndarray, stencil: Stencil, band: float, s
         out[start: start + chunk, stencil.present] = np.maximum.reduceat(values, stencil.starts, axis=1)
     out = out.reshape(len(cells), *stencil.shape)
     wall = out >= BLOCKING * band
-    occupied = (out > structure).astype(np.float32)
-    occupied[np.cumsum(wall, axis=1) - wall > 0] = 0.0  # a wall nearer in the same sector
-    return occupied
+    out[np.cumsum(wall, axis=1) - wall > 0] = 0.0  # a wall nearer in the same sector
+    return out
 
 
 def spectra(descriptors: np.ndarray) -> np.ndarray:
@@ -221,7 +215,7 @@ class PlaceIndex:
         ok = np.isfinite(ground)
         cells, ground = cells[ok], ground[ok]
         xy = raster.origin + (cells + 0.5) * g.cell
-        return cls(g, np.column_stack([xy, ground]), spectra(describe(raster, cells, Stencil(g), g.band, g.free_below)))
+        return cls(g, np.column_stack([xy, ground]), spectra(describe(raster, cells, Stencil(g), g.band)))
 
     def describe_scan(self, scan_xyz: np.ndarray) -> tuple[np.ndarray, float]:
         """The scan's descriptor around its origin (the sensor) and the ground's z under it, scan frame."""
@@ -239,7 +233,7 @@ class PlaceIndex:
                                max(at[0, 1] - reach, 0): at[0, 1] + reach + 1]
         seen = window[np.isfinite(window)]
         ground = float(np.quantile(seen, GROUND_QUANTILE)) if len(seen) else float(near[:, 2].min())
-        return describe(raster, at, self.stencil, g.band, g.free_below)[0], float(ground)
+        return describe(raster, at, self.stencil, g.band)[0], float(ground)
 
     def retrieve(self, scan_xyz: np.ndarray, count: int, chunk: int = 16384) -> list[Hit]:
         """The `count` most similar (place, heading) pairs for a scan (sensor frame, z up): every place

@@ -24,6 +24,7 @@ from genreg_core.place_index import (
     Stencil,
     describe,
     height_image,
+    hit_pose,
     shift_distances,
     smallest,
     spectra,
@@ -88,27 +89,26 @@ def test_the_smallest_values_are_those_a_stable_sort_puts_first(values: list[int
     np.testing.assert_array_equal(smallest(array, count), np.argsort(array, kind="stable")[:count])
 
 
-def test_descriptor_bins_hold_structure_above_the_ground_and_nothing_behind_a_wall() -> None:
+def test_descriptor_bins_hold_the_highest_point_of_each_polar_bin_and_nothing_behind_a_wall() -> None:
     g = IndexGeometry(radius=10.0, rings=5, sectors=8, band=2.0, cell=0.25, ground_cells=3)
     rng = np.random.default_rng(2)
     ground = np.column_stack([rng.uniform(-12, 12, (40_000, 2)), np.zeros(40_000)])  # flat ground at z = 0
     # one post of known height in each of a few bins, well inside them (away from bin edges)
     posts = []
-    # 2.6 and 2.5: above the band (walls); the 1.0 post stands behind the 2.5 one in its sector; 0.2: a kerb,
-    # below free_below (0.3): no structure
-    for ring, sector, height in [(1, 0, 0.7), (3, 2, 1.5), (4, 5, 1.9), (2, 7, 2.6), (1, 3, 2.5), (3, 3, 1.0),
-                                 (2, 1, 0.2)]:
+    # 2.6 and 2.5: above the band (walls); the 1.0 post stands behind the 2.5 one in its sector
+    for ring, sector, height in [(1, 0, 0.7), (3, 2, 1.5), (4, 5, 1.9), (2, 7, 2.6), (1, 3, 2.5), (3, 3, 1.0)]:
         r = (ring + 0.5) * g.radius / g.rings
         a = -np.pi + (sector + 0.5) * 2 * np.pi / g.sectors
         z = np.linspace(0.0, height, 30)
         posts.append(np.column_stack([np.full(30, r * np.cos(a)), np.full(30, r * np.sin(a)), z]))
     cloud = np.vstack([ground, *posts])
     raster = height_image(cloud, g, margin=g.radius)
-    got = describe(raster, raster.cells(np.zeros((1, 2))), Stencil(g), g.band, g.free_below)[0]
+    got = describe(raster, raster.cells(np.zeros((1, 2))), Stencil(g), g.band)[0]
     expected = np.zeros((g.rings, g.sectors))
-    expected[1, 0] = expected[3, 2] = expected[4, 5] = expected[2, 7] = 1.0
-    expected[1, 3] = 1.0  # a wall: (3, 3) behind it stays 0
-    np.testing.assert_array_equal(got, expected)
+    expected[1, 0], expected[3, 2], expected[4, 5] = 0.7, 1.5, 1.9
+    expected[2, 7] = max(z for z in np.linspace(0.0, 2.6, 30) if z <= 2.0)  # its highest point within the band
+    expected[1, 3] = max(z for z in np.linspace(0.0, 2.5, 30) if z <= 2.0)  # a wall: (3, 3) behind it stays 0
+    np.testing.assert_allclose(got, expected, atol=1e-5)
 
 
 def test_retrieval_finds_the_place_and_heading_of_held_out_scans(street: tuple[Scene, np.ndarray]) -> None:
@@ -241,30 +241,24 @@ def test_a_scan_no_retrieved_place_fits_is_not_slid_and_not_confident(street: tu
         assert re < PLACED_RE_DEG and te < PLACED_TE_M and result.confidence >= 0.5, (re, te, result.confidence)
 
 
-def test_a_retrieved_look_alike_place_bounds_the_confidence_and_is_named(street: tuple[Scene, np.ndarray]) -> None:
-    scene, map_xyz = street
+def test_a_retrieved_look_alike_place_is_verified_too(street: tuple[Scene, np.ndarray]) -> None:
+    _, map_xyz = street
     loc = MapLocalizer(map_xyz, config=LocalizationConfig(retrieve=8, map_voxel=0.2))
-    rng = np.random.default_rng(12)
-    T = sensor_pose(20.0, 0.5, 1.8, 0.4)
-    result = loc.localize(lidar_scan(scene, T, rng, SENSOR).points)
-    re, te = transform_errors(result.transformation, T)
-    assert re < PLACED_RE_DEG and te < PLACED_TE_M and result.confidence >= 0.5
-    p, at = result.confidence, result.transformation[:3, 3]
     margin, reach = loc.config.lookalike_margin, LOOKALIKE_SPACINGS * loc.config.index_spacing
 
-    def hit(dx: float, distance: float) -> Hit:
-        return Hit(np.array([at[0] + dx, at[1], 0.0]), 0.4, distance)
+    def hit(x: float, distance: float, yaw: float = 0.4) -> Hit:
+        return Hit(np.array([x, 0.0, 1.8]), yaw, distance)
 
-    own = [hit(0.0, 0.50), hit(1.0, 0.51)]  # the pose's place and its neighbour
-    # a place further than the reach, its descriptor within the margin of the best: a look-alike
-    alike = loc.unlike(result, [*own, hit(reach + 4.0, 0.50 + 0.9 * margin)])
-    assert alike.confidence == pytest.approx(1.0 - p)  # as probable as the pose: at most 1 - p
-    assert alike.unconstrained[-1] == f"translation along (1.00, 0.00, 0.00) to a look-alike place {reach + 4.0:.2f} m away"
-    widened = alike.covariance[:3, :3] - result.covariance[:3, :3]
-    np.testing.assert_allclose(widened, p * (1 - p) * np.diag([(reach + 4.0) ** 2, 0.0, 0.0]), atol=1e-9)
-    # not a look-alike: beyond the margin, or within the reach (the pose's own neighbourhood), or the rule off
-    for hits, config in (([*own, hit(reach + 4.0, 0.50 + 1.1 * margin)], loc.config),
-                         ([*own, hit(reach - 0.5, 0.50)], loc.config),
-                         ([*own, hit(reach + 4.0, 0.50)], replace(loc.config, lookalike_margin=0.0))):
-        loc.config = config
-        assert loc.unlike(result, hits) is result
+    own = [hit(0.0, 0.50), hit(1.0, 0.51)]  # the fittest candidate's place and its neighbour
+    for far, expected in ((hit(reach + 4.0, 0.50 + 0.9 * margin), 2),  # beyond the reach, within the margin
+                          (hit(reach + 4.0, 0.50 + 1.1 * margin), None),  # beyond the margin
+                          (hit(reach - 0.5, 0.50), None)):  # the candidate's own neighbourhood
+        hits = [*own, far]
+        assert loc.lookalike(hits, [hit_pose(h) for h in hits], [0]) == expected
+    # the nearest in descriptor of several; none that a kept candidate already covers; none with the rule off
+    hits = [*own, hit(reach + 4.0, 0.50 + 0.9 * margin), hit(-reach - 9.0, 0.50 + 0.2 * margin)]
+    poses = [hit_pose(h) for h in hits]
+    assert loc.lookalike(hits, poses, [0]) == 3
+    assert loc.lookalike(hits, poses, [0, 3]) == 2
+    loc.config = replace(loc.config, lookalike_margin=0.0)
+    assert loc.lookalike(hits, poses, [0]) is None
