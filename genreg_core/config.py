@@ -392,11 +392,6 @@ class LocalizationConfig:
                                     "scan no retrieved place fits (verify_fitness): a scan the map does not hold "
                                     "never converges, and is rejected sooner with fewer (track_iterations: as "
                                     "tracked).", low=1, high=1000)
-    lookalike_margin: float = setting(0.03, "With the place index, a retrieved place at least 6 index spacings "
-                                      "from the fittest candidate whose descriptor is within this distance of the "
-                                      "best retrieved one (a look-alike the index cannot tell apart: a repeated "
-                                      "corridor) is verified too, and bounds the chosen pose as its rival if the "
-                                      "scan seats there (0: off).", low=0.0, high=2.0)
     map_threads: int = setting(0, "Threads that prepare the map for the place index's GICP and VGICP on load "
                                "(its k-d trees and covariances: the same result on any number); 0: "
                                "OMP_NUM_THREADS, else 1.", low=0, high=256)

@@ -85,7 +85,7 @@ from genreg_core.config import SCENE_MODEL, SCENE_REGISTRATION, LocalizationConf
 from genreg_core.errors import ConfigError, TooFewPointsError
 from genreg_core.geometry import apply_transform
 from genreg_core.place_index import VERSION as INDEX_VERSION
-from genreg_core.place_index import Hit, IndexGeometry, PlaceIndex, hit_pose
+from genreg_core.place_index import IndexGeometry, PlaceIndex, hit_pose
 from genreg_core.prepare import check_transform, robust_extent, validate_cloud
 from genreg_core.preprocess import voxel_downsample
 from genreg_core.refine import GICPTarget, VoxelTarget, gicp_target
@@ -107,9 +107,6 @@ SPACING_SAMPLES = 20_000  # the map's resolution is the median nearest-neighbour
 RADIUS_QUANTILE = 0.9  # a scan's radius: this quantile of its points' distances from their centroid
 PLACE_CHUNK = 256  # place centres searched at once (bounds the memory of the neighbour lists)
 EXTENT_SAMPLES = 200_000  # the map's robust extent from this many of its points
-LOOKALIKE_SPACINGS = 6.0  # a look-alike place (`MapLocalizer.lookalike`) is at least this many index spacings
-# from the fittest candidate: on the training campuses, places 4-8 m away told the confidently wrong corridor
-# scans (descriptor margins <= 0.027) from road scans (>= 0.033) alike; nearer ones are its own neighbours
 
 
 def median_spacing(points: np.ndarray, samples: int = SPACING_SAMPLES, seed: int = 0,
@@ -149,23 +146,6 @@ def cells_of(points: np.ndarray, spacing: float, rows: bool = True) -> tuple[np.
     keys = ((cells[:, 0] - low[0]) * size[1] + cells[:, 1] - low[1]) * size[2] + cells[:, 2] - low[2]
     keys, inverse = np.unique(keys, return_inverse=True) if rows else (np.unique(keys), None)
     return np.stack([keys // (size[1] * size[2]), keys // size[2] % size[1], keys % size[2]], axis=1) + low, inverse
-
-
-def rivalled(result: RegistrationResult, p: float, position: np.ndarray, what: str) -> RegistrationResult:
-    """`result` with a distinct rival at `position` (map frame) of probability `p`: two distinct poses cannot
-    both be right, so its confidence is at most 1 - p (`below_rival`); the rival is named among its
-    unconstrained motions ("translation along (x, y, z) to {what} d m away") and its offset widens the
-    covariance as a mixture of the two poses would (p (1 - p) d d^T on the translation block)."""
-    offset = np.asarray(position, dtype=np.float64) - result.transformation[:3, 3]
-    distance = float(np.linalg.norm(offset))
-    covariance = None if result.covariance is None else result.covariance.copy()
-    if covariance is not None:
-        covariance[:3, :3] += p * (1.0 - p) * np.outer(offset, offset)
-    u = offset / max(distance, 1e-12)
-    u = u if u[np.argmax(np.abs(u))] > 0 else -u
-    slide = f"translation along ({u[0]:.2f}, {u[1]:.2f}, {u[2]:.2f}) to {what} {distance:.2f} m away"
-    return replace(result, confidence=below_rival(result.confidence, p), covariance=covariance,
-                   unconstrained=(*result.unconstrained, slide))
 
 
 def map_parts(points: np.ndarray, gap: float) -> np.ndarray:
@@ -638,8 +618,6 @@ class MapLocalizer:
             if len(kept) < c.candidates and all(distinct_poses(coarse[k], coarse[j], separation,
                                                                c.rival_distance * voxel) for j in kept):
                 kept.append(int(k))
-        if kept and (k := self.lookalike(hits, coarse, kept)) is not None:
-            kept.append(k)  # verified too: if the scan seats there as well, it is the chosen pose's rival
         t2 = time.perf_counter()
         iterations = c.unfit_iterations if unfit else c.track_iterations
         results = [r for k in kept if (r := self.track(scan, coarse[k], local=whole, iterations=iterations)) is not None]
@@ -683,27 +661,16 @@ class MapLocalizer:
         p = rival.confidence
         if p <= 1.0 - best.confidence and p < best.confidence / 2:  # it neither bounds nor rivals the pose
             return best
-        return rivalled(best, p, rival.transformation[:3, 3], "a rival pose")
-
-    def lookalike(self, hits: Sequence[Hit], coarse: Sequence[np.ndarray], kept: Sequence[int]) -> int | None:
-        """The retrieved place the index cannot tell from the fittest candidate's, if any: the hit (its coarse
-        pose's row in `coarse`, hits first) at least `LOOKALIKE_SPACINGS` index spacings from the fittest kept
-        pose, distinct from every kept one, whose descriptor distance is within `lookalike_margin` of the best
-        hit's; the nearest in descriptor of them. The corridors of one building look alike to the index, and
-        the scan seats about as well in either; verified, such a place bounds the chosen pose as its rival
-        even when no fitter candidate went there."""
-        margin = self.config.lookalike_margin
-        if margin <= 0 or not hits:
-            return None
-        best = min(h.distance for h in hits)
-        reach = LOOKALIKE_SPACINGS * self.config.index_spacing
-        separation = np.radians(self.registrar.config.pdsac.mode_separation)
-        xy = coarse[kept[0]][:2, 3]
-        alike = [k for k, h in enumerate(hits) if h.distance <= best + margin
-                 and np.linalg.norm(h.centre[:2] - xy) >= reach
-                 and all(distinct_poses(coarse[k], coarse[j], separation, self.config.rival_distance * self.voxel_size)
-                         for j in kept)]
-        return min(alike, key=lambda k: hits[k].distance) if alike else None
+        offset = rival.transformation[:3, 3] - best.transformation[:3, 3]
+        distance = float(np.linalg.norm(offset))
+        covariance = None if best.covariance is None else best.covariance.copy()
+        if covariance is not None:
+            covariance[:3, :3] += p * (1.0 - p) * np.outer(offset, offset)
+        u = offset / max(distance, 1e-12)
+        u = u if u[np.argmax(np.abs(u))] > 0 else -u
+        slide = f"translation along ({u[0]:.2f}, {u[1]:.2f}, {u[2]:.2f}) to a rival pose {distance:.2f} m away"
+        return replace(best, confidence=below_rival(best.confidence, p), covariance=covariance,
+                       unconstrained=(*best.unconstrained, slide))
 
     def screen(self, scan: np.ndarray, places: Sequence[np.ndarray]) -> list[RegistrationResult]:
         """The scan registered against every place (point sets), unrefined, in batches of `batch_size`."""

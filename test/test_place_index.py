@@ -5,8 +5,6 @@ position along it one period apart looks the same: no pose may be confident ther
 
 from __future__ import annotations
 
-from dataclasses import replace
-
 import numpy as np
 import pytest
 from hypothesis import given
@@ -15,16 +13,14 @@ from hypothesis import strategies as st
 from genreg_core.config import LocalizationConfig
 from genreg_core.data.synthetic_lidar import LidarSensor, Scene, lidar_scan, sensor_pose, street_scene
 from genreg_core.geometry import apply_transform
-from genreg_core.localization import LOOKALIKE_SPACINGS, MapLocalizer
+from genreg_core.localization import MapLocalizer
 from genreg_core.metrics import transform_errors
 from genreg_core.place_index import (
-    Hit,
     IndexGeometry,
     PlaceIndex,
     Stencil,
     describe,
     height_image,
-    hit_pose,
     shift_distances,
     smallest,
     spectra,
@@ -239,26 +235,3 @@ def test_a_scan_no_retrieved_place_fits_is_not_slid_and_not_confident(street: tu
         result = loc.localize(lidar_scan(scene, T, rng, SENSOR).points)
         re, te = transform_errors(result.transformation, T)
         assert re < PLACED_RE_DEG and te < PLACED_TE_M and result.confidence >= 0.5, (re, te, result.confidence)
-
-
-def test_a_retrieved_look_alike_place_is_verified_too(street: tuple[Scene, np.ndarray]) -> None:
-    _, map_xyz = street
-    loc = MapLocalizer(map_xyz, config=LocalizationConfig(retrieve=8, map_voxel=0.2))
-    margin, reach = loc.config.lookalike_margin, LOOKALIKE_SPACINGS * loc.config.index_spacing
-
-    def hit(x: float, distance: float, yaw: float = 0.4) -> Hit:
-        return Hit(np.array([x, 0.0, 1.8]), yaw, distance)
-
-    own = [hit(0.0, 0.50), hit(1.0, 0.51)]  # the fittest candidate's place and its neighbour
-    for far, expected in ((hit(reach + 4.0, 0.50 + 0.9 * margin), 2),  # beyond the reach, within the margin
-                          (hit(reach + 4.0, 0.50 + 1.1 * margin), None),  # beyond the margin
-                          (hit(reach - 0.5, 0.50), None)):  # the candidate's own neighbourhood
-        hits = [*own, far]
-        assert loc.lookalike(hits, [hit_pose(h) for h in hits], [0]) == expected
-    # the nearest in descriptor of several; none that a kept candidate already covers; none with the rule off
-    hits = [*own, hit(reach + 4.0, 0.50 + 0.9 * margin), hit(-reach - 9.0, 0.50 + 0.2 * margin)]
-    poses = [hit_pose(h) for h in hits]
-    assert loc.lookalike(hits, poses, [0]) == 3
-    assert loc.lookalike(hits, poses, [0, 3]) == 2
-    loc.config = replace(loc.config, lookalike_margin=0.0)
-    assert loc.lookalike(hits, poses, [0]) is None
