@@ -41,6 +41,9 @@ Sections (--sections, comma separated):
   track      a 10 Hz drive along the longest street (not the terraced one), 1 m between scans, 1 m off its
              centre-line, an HDL-64-like sensor at 2048 columns (~100k points): the first scan localised
              without a guess, each next one from the previous result's pose; lost: a scan not placed
+  track-indoor the global section's corridor scans (--indoor-scans, its poses) localised from guesses off the
+             truth by 0.3 m and 3 deg, and by 1 m and 10 deg (each in a random direction and turn): placed,
+             confident-wrong, TE, the largest error along the corridor of an accepted pose
   offmap     scans of another world (seed + 1) localised in the map: accepted count, time
   mirrored   the first --mirrored-scans road scans of the global section mirrored left to right in the
              sensor frame (y -> -y; z stays up): a twin street laid out as the map's mirror image, where no
@@ -73,7 +76,8 @@ from multiprocessing.connection import Connection
 from pathlib import Path
 from typing import Any, Self
 
-SECTIONS = ("global", "baselines", "curve", "build", "track", "offmap", "mirrored", "beyond", "picture")
+SECTIONS = ("global", "baselines", "curve", "build", "track", "track-indoor", "offmap", "mirrored", "beyond",
+            "picture")
 QUICK_SECTIONS = ("global", "curve", "track", "offmap", "mirrored", "beyond", "picture")
 HELD_OUT_SEED = 7  # the first held-out world seed
 TRAINING_SEEDS = (0, 1, 2)
@@ -142,7 +146,7 @@ from tqdm import tqdm
 
 from genreg_core.config import SCENE_MODEL, SCENE_REGISTRATION, LocalizationConfig
 from genreg_core.data import lidar_world as lw
-from genreg_core.data.synthetic_lidar import LidarSensor
+from genreg_core.data.synthetic_lidar import LidarSensor, sensor_pose
 from genreg_core.localization import MapLocalizer
 from genreg_core.metrics import transform_errors
 from genreg_core.preprocess import voxel_downsample
@@ -165,7 +169,9 @@ WARM_LOADS = 3  # loads from the cache after the build (the median is the figure
 JITTER_M = 0.02  # build: the top-up points' jitter (normal, per axis), m
 INDOOR_HEIGHT = float(inspect.signature(lw.survey_poses).parameters["indoor_height"].default)
 MIRROR = np.array([1.0, -1.0, 1.0])  # the mirrored section's scans: y -> -y in the sensor frame
-STREAMS = {"roads": 1, "indoor": 2, "scans": 3, "curve": 10, "track": 20, "offmap": 30, "beyond": 40}
+STREAMS = {"roads": 1, "indoor": 2, "scans": 3, "curve": 10, "track": 20, "offmap": 30, "beyond": 40,
+           "track-indoor": 50}
+INDOOR_GUESSES = ((0.3, 3.0), (1.0, 10.0))  # track-indoor: the guesses' offsets from the truth (m, deg)
 BASELINES = ("kiss-matcher+p2plane", "fpfh+ransac+icp")
 
 
@@ -569,6 +575,43 @@ class Bench:
               f"{np.median([r['confidence'] for r in tracked]):.2f} ({min(r['confidence'] for r in tracked):.2f})"
               if tracked else "-", str(sum(not r["placed"] for r in recs))]])
 
+    def run_track_indoor(self) -> None:
+        a = self.args
+        s = self.main
+        w = s.world
+        if not (a.indoor_scans and w.indoor):
+            return
+        poses = lw.test_poses(w, a.indoor_scans, rng_of("indoor", a.seed), height=INDOOR_HEIGHT, where="indoor")
+        scans = world_scans(w, poses, rng_of("scans", a.seed, 1), "indoor")
+        rng = rng_of("track-indoor", a.seed)
+        rows = []
+        for metres, degrees in INDOOR_GUESSES:
+            recs = []
+            for i, (T, scan) in enumerate(progress(list(zip(poses, scans)), f"track-indoor {metres:g} m")):
+                heading = rng.uniform(-np.pi, np.pi)
+                off = sensor_pose(metres * np.cos(heading), metres * np.sin(heading), 0.0,
+                                  np.radians(degrees) * rng.choice([-1.0, 1.0]))
+                rec, _ = localise(s.loc, scan, T, "track-indoor", f"{metres:g} m, {degrees:g} deg", i, T @ off,
+                                  diagnose=False)
+                axis = corridor_axis(w, T)
+                rec["along_m"] = abs(float((np.asarray(rec["estimate"])[:2, 3] - T[:2, 3]) @ axis))
+                recs.append(rec)
+            self.report.records += recs
+            te = [r["te_m"] for r in recs]
+            ms = [1000 * r["seconds"] for r in recs]
+            wrong = [r for r in recs if r["confident_wrong"]]
+            rows.append([f"{metres:g} m, {degrees:g} deg", str(len(recs)), f"{sum(r['placed'] for r in recs)}/{len(recs)}",
+                         str(len(wrong)), fmt(pct(te, 50), 3),
+                         fmt(max((r["along_m"] for r in recs if r["confidence"] >= GATE), default=float("nan")), 3),
+                         ", ".join(f"{r['te_m']:.2f} m at {r['confidence']:.2f}" for r in wrong) or "-",
+                         fmt(pct(ms, 50))])
+        self.report.add(f"## Tracking in corridors: {len(poses)} corridor scans of {w.key} from a guess", "",
+                        f"The global section's corridor scans ({INDOOR_HEIGHT:g} m high), each localised from its "
+                        "truth moved by the offset in a random direction and turned by the angle either way. Load "
+                        f"average {load_text()}.", "")
+        self.report.table(["guess off by", "scans", "placed", "confident-wrong", "TE median m",
+                           "largest error along the corridor, accepted m", "confident-wrong: TE at confidence", "ms median"], rows)
+
     def run_offmap(self) -> None:
         a = self.args
         s = self.main
@@ -661,6 +704,19 @@ class Bench:
 
 
 # ----------------------------------------------------------------------------- geometry of the sections
+def corridor_axis(world: lw.World, T: np.ndarray) -> np.ndarray:
+    """The unit xy direction of the corridor centre-line segment nearest the pose T_world_sensor."""
+    best, axis = np.inf, np.array([1.0, 0.0])
+    for line in world.indoor:
+        for a, b in itertools.pairwise(line):
+            ab = b - a
+            t = float(np.clip(np.dot(T[:2, 3] - a, ab) / np.dot(ab, ab), 0.0, 1.0))
+            d = float(np.linalg.norm(T[:2, 3] - (a + t * ab)))
+            if d < best:
+                best, axis = d, ab / np.linalg.norm(ab)
+    return axis
+
+
 def drive_poses(world: lw.World, n: int) -> np.ndarray:
     """(n, 4, 4) T_world_sensor 1 m apart along the longest street off the terraced one, from `TRACK_START` m
     in, `TRACK_OFFSET` m to the right of its centre-line, heading along it, 1.8 m high."""
@@ -944,7 +1000,8 @@ def main() -> int:
     bench = Bench(a, report, figures)
     runs: dict[str, Callable[[], None]] = {
         "global": bench.run_global, "baselines": bench.run_baselines, "curve": bench.run_curve,
-        "build": bench.run_build, "track": bench.run_track, "offmap": bench.run_offmap, "mirrored": bench.run_mirrored,
+        "build": bench.run_build, "track": bench.run_track, "track-indoor": bench.run_track_indoor,
+        "offmap": bench.run_offmap, "mirrored": bench.run_mirrored,
         "beyond": bench.run_beyond, "picture": bench.run_picture}
     for name in SECTIONS:
         if name in a.sections:
