@@ -327,7 +327,8 @@ MAP_OVERRIDES: dict[str, Any] = {**SCENE_OVERRIDES, "workers": 1, "map.enabled":
 # scans confidently wrong)
 LIDAR_MAP_OVERRIDES: dict[str, Any] = {**MAP_OVERRIDES, "map.localization.retrieve": 8,
                                        "map.localization.map_voxel": 0.2, "map.localization.threads": 1,
-                                       "map.localization.verify_fitness": 0.8, "map.localization.unfit_iterations": 3}
+                                       "map.localization.verify_fitness": 0.8, "map.localization.unfit_iterations": 3,
+                                       "map.localization.flat_fit": 0.92}
 PROFILES: dict[str, tuple[str, dict[str, Any]]] = {
     "genreg.yaml": (f"depth-camera and indoor scenes (the scene model {SCENE_MODEL})", SCENE_OVERRIDES),
     "genreg_map.yaml": (f"map mode: depth-camera scans localised in a prior map (the scene model {SCENE_MODEL})",

@@ -5,6 +5,8 @@ position along it one period apart looks the same: no pose may be confident ther
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 from hypothesis import given
@@ -235,3 +237,30 @@ def test_a_scan_no_retrieved_place_fits_is_not_slid_and_not_confident(street: tu
         result = loc.localize(lidar_scan(scene, T, rng, SENSOR).points)
         re, te = transform_errors(result.transformation, T)
         assert re < PLACED_RE_DEG and te < PLACED_TE_M and result.confidence >= 0.5, (re, te, result.confidence)
+
+
+def test_a_track_as_well_fitted_along_a_uniform_corridor_names_it_and_a_street_does_not(
+        street: tuple[Scene, np.ndarray]) -> None:
+    corridor = Scene("corridor")
+    corridor.add_plane((0, 0, 0), (0, 0, 1), 0.3)
+    for side in (1, -1):  # walls 1.5 m either side of the line y = 0, 3 m high, a 1 m doorway every 10 m
+        for x in np.arange(-150.0, 150.0, 10.0):
+            corridor.add_box((x + 4.5, side * 1.6, 1.5), (9.0, 0.2, 3.0), 0.0, 0.6)
+    corridor.add_box((0.0, 0.0, 3.1), (300.0, 3.4, 0.2), 0.0, 0.6)  # the ceiling
+    config = LocalizationConfig(retrieve=8, map_voxel=0.2, flat_fit=0.92)
+    rng = np.random.default_rng(13)
+    for scene, map_xyz, flat in ((corridor, fused_map(corridor, np.arange(-60.0, 60.1, 4.0)), True),
+                                 (street[0], street[1], False)):
+        loc = MapLocalizer(map_xyz, config=config)
+        T = sensor_pose(rng.uniform(-20, 20), rng.uniform(-0.5, 0.5), 1.8, rng.uniform(-np.pi, np.pi))
+        scan = lidar_scan(scene, T, rng, SENSOR).points
+        result = loc.localize(scan, initial_guess=T)
+        named = [u for u in result.unconstrained if "as well fitted" in u]
+        assert bool(named) == flat, (scene.name, result.unconstrained)
+        if flat:  # along the corridor (x), and the covariance spans the shift there
+            shift = 3.0 * loc.voxel_size
+            assert named[0].startswith("translation along (1.00, ") and f"{shift:.2f} m" in named[0]
+            assert result.covariance[0, 0] >= shift ** 2
+        off = replace(config, flat_fit=0.0)  # the same track without the test: nothing named
+        loc.config = off
+        assert not [u for u in loc.localize(scan, initial_guess=T).unconstrained if "as well fitted" in u]
