@@ -566,7 +566,7 @@ class MapLocalizer:
     def flat(self, result: RegistrationResult, sample: np.ndarray, index: TargetIndex, tight: float
              ) -> RegistrationResult:
         """A tracked result whose fit is as good moved along the scan's main horizontal axis (a uniform
-        corridor or road): `sample` (the aligned scan points, scan frame) seats within one map spacing as
+        corridor or road): `sample` (the tracked scan points, scan frame) seats within one map spacing as
         many points (at least `flat_fit` x `tight`, the pose's own share) at the pose moved
         `FLAT_SHIFT_SPACINGS` map spacings either way along the axis. GICP stops anywhere in such a valley,
         which its Hessian does not see; the axis is named among the result's unconstrained motions and the
