@@ -394,8 +394,9 @@ class LocalizationConfig:
                                     "tracked).", low=1, high=1000)
     flat_fit: float = setting(0.0, "A tracked pose that seats at least this share of its own tight fitness when "
                               "moved 3 map spacings either way along the scan's main horizontal axis (a uniform "
-                              "corridor) is named unconstrained along it, its covariance widened by that shift "
-                              "(0: off).", low=0.0, high=10.0)
+                              "corridor) is named unconstrained along it, its covariance widened by that shift; "
+                              "found without a guess (the place index), its confidence is also held at 1 - its "
+                              "own (0: off).", low=0.0, high=10.0)
     map_threads: int = setting(0, "Threads that prepare the map for the place index's GICP and VGICP on load "
                                "(its k-d trees and covariances: the same result on any number); 0: "
                                "OMP_NUM_THREADS, else 1.", low=0, high=256)

@@ -107,6 +107,7 @@ SPACING_SAMPLES = 20_000  # the map's resolution is the median nearest-neighbour
 RADIUS_QUANTILE = 0.9  # a scan's radius: this quantile of its points' distances from their centroid
 PLACE_CHUNK = 256  # place centres searched at once (bounds the memory of the neighbour lists)
 EXTENT_SAMPLES = 200_000  # the map's robust extent from this many of its points
+AS_WELL_FITTED = "as well fitted"  # `MapLocalizer.flat`'s name of a flat axis among a result's unconstrained motions
 FLAT_SHIFT_SPACINGS = 3.0  # a tracked pose's fit is tested this many map spacings along the scan's main axis
 # (`MapLocalizer.flat`): on the training campuses (0.11 m spacings) tracked corridor scans stop up to 0.3 m
 # along the corridor
@@ -570,7 +571,8 @@ class MapLocalizer:
         many points (at least `flat_fit` x `tight`, the pose's own share) at the pose moved
         `FLAT_SHIFT_SPACINGS` map spacings either way along the axis. GICP stops anywhere in such a valley,
         which its Hessian does not see; the axis is named among the result's unconstrained motions and the
-        covariance widened by the shift's square along it. The confidence is kept. Poses less confident than
+        covariance widened by the shift's square along it. The confidence is kept (the robot's last pose holds
+        a tracked scan in its corridor; `retrieved` bounds a pose found without one). Poses less confident than
         `track_below` are not tested (they are not kept as tracked; off: `flat_fit` 0)."""
         ratio = self.config.flat_fit
         if ratio <= 0 or tight <= 0 or result.confidence < self.config.track_below:  # an unsure pose is not kept
@@ -589,7 +591,7 @@ class MapLocalizer:
         if covariance is not None:
             covariance[:3, :3] += shift * shift * np.outer(u, u)
         u = u if u[np.argmax(np.abs(u))] > 0 else -u
-        flat = f"translation along ({u[0]:.2f}, {u[1]:.2f}, {u[2]:.2f}): as well fitted {shift:.2f} m along it"
+        flat = f"translation along ({u[0]:.2f}, {u[1]:.2f}, {u[2]:.2f}): {AS_WELL_FITTED} {shift:.2f} m along it"
         return replace(result, covariance=covariance, unconstrained=(*result.unconstrained, flat))
 
     def prepare(self) -> None:
@@ -664,6 +666,8 @@ class MapLocalizer:
         if not results:  # nothing retrieved near enough to the map to align: the whole map from the identity
             results = [self.track(scan, np.eye(4), local=whole) or self._mapper.register(scan, self.map)]
         best = self.chosen(results)
+        if any(AS_WELL_FITTED in motion for motion in best.unconstrained):  # a corridor, and no guess
+            best = replace(best, confidence=below_rival(best.confidence, best.confidence))
         best.timings = {"retrieve": t1 - t0, "screen": t2 - t1, "refine": time.perf_counter() - t2,
                         "total": time.perf_counter() - t0}
         return best

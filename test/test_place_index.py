@@ -261,6 +261,13 @@ def test_a_track_as_well_fitted_along_a_uniform_corridor_names_it_and_a_street_d
             shift = 3.0 * loc.voxel_size
             assert named[0].startswith("translation along (1.00, ") and f"{shift:.2f} m" in named[0]
             assert result.covariance[0, 0] >= shift ** 2
+            # found without a guess (a retrieved place), such a pose is bounded as by a rival as probable: the
+            # chosen candidate stands in for the place index's choice here
+            sure = replace(result, confidence=0.9)
+            loc.chosen = lambda results, sure=sure: sure
+            assert loc.retrieved(voxel_downsample(scan.astype(np.float64), loc.voxel_size)).confidence == \
+                pytest.approx(0.1)
+            del loc.chosen
         off = replace(config, flat_fit=0.0)  # the same track without the test: nothing named
         loc.config = off
         assert not [u for u in loc.localize(scan, initial_guess=T).unconstrained if "as well fitted" in u]
