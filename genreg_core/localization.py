@@ -99,7 +99,14 @@ from genreg_core.result import (
     below_rival,
     build_result,
 )
-from genreg_core.score import FITNESS_SPACINGS, TIGHT_SPACINGS, TargetIndex, overlap_shares, see_through
+from genreg_core.score import (
+    FITNESS_SPACINGS,
+    TIGHT_SPACINGS,
+    TargetIndex,
+    motion,
+    overlap_shares,
+    see_through,
+)
 
 # The settings are `LocalizationConfig`'s (their measurements: MODEL_CARD "Map relocalisation"). Below:
 # implementation details that change no result.
@@ -157,6 +164,16 @@ def main_axis(points: np.ndarray) -> np.ndarray:
     xy = points[:, :2] - points[:, :2].mean(axis=0)
     axis = np.linalg.eigh(xy.T @ xy)[1][:, -1]
     return np.array([axis[0], axis[1], 0.0])
+
+
+def spanning(result: RegistrationResult, offset: np.ndarray, weight: float, text: str) -> RegistrationResult:
+    """`result` with `text` among its unconstrained motions and its covariance widened along a translation
+    `offset` (map frame): `weight` offset offset^T added to the translation block (a mixture of two poses `offset`
+    apart, of probabilities p and 1 - p: weight p (1 - p); a flat valley spanning it: 1)."""
+    covariance = None if result.covariance is None else result.covariance.copy()
+    if covariance is not None:
+        covariance[:3, :3] += weight * np.outer(offset, offset)
+    return replace(result, covariance=covariance, unconstrained=(*result.unconstrained, text))
 
 
 def map_parts(points: np.ndarray, gap: float) -> np.ndarray:
@@ -587,12 +604,8 @@ class MapLocalizer:
             moved.append(float(overlap_shares(sample, index, S, np.array([TIGHT_SPACINGS * self.voxel_size]))[0]))
         if max(moved) < ratio * tight:
             return result
-        covariance = None if result.covariance is None else result.covariance.copy()
-        if covariance is not None:
-            covariance[:3, :3] += shift * shift * np.outer(u, u)
-        u = u if u[np.argmax(np.abs(u))] > 0 else -u
-        flat = f"translation along ({u[0]:.2f}, {u[1]:.2f}, {u[2]:.2f}): {AS_WELL_FITTED} {shift:.2f} m along it"
-        return replace(result, covariance=covariance, unconstrained=(*result.unconstrained, flat))
+        text = f"{motion('translation along', u)}: {AS_WELL_FITTED} {shift:.2f} m along it"
+        return spanning(result, shift * u, 1.0, text)
 
     def prepare(self) -> None:
         """Build now what localisation would build on first use: with the place index, the index and the
@@ -704,15 +717,8 @@ class MapLocalizer:
         if p <= 1.0 - best.confidence and p < best.confidence / 2:  # it neither bounds nor rivals the pose
             return best
         offset = rival.transformation[:3, 3] - best.transformation[:3, 3]
-        distance = float(np.linalg.norm(offset))
-        covariance = None if best.covariance is None else best.covariance.copy()
-        if covariance is not None:
-            covariance[:3, :3] += p * (1.0 - p) * np.outer(offset, offset)
-        u = offset / max(distance, 1e-12)
-        u = u if u[np.argmax(np.abs(u))] > 0 else -u
-        slide = f"translation along ({u[0]:.2f}, {u[1]:.2f}, {u[2]:.2f}) to a rival pose {distance:.2f} m away"
-        return replace(best, confidence=below_rival(best.confidence, p), covariance=covariance,
-                       unconstrained=(*best.unconstrained, slide))
+        slide = f"{motion('translation along', offset)} to a rival pose {np.linalg.norm(offset):.2f} m away"
+        return replace(spanning(best, offset, p * (1.0 - p), slide), confidence=below_rival(best.confidence, p))
 
     def screen(self, scan: np.ndarray, places: Sequence[np.ndarray]) -> list[RegistrationResult]:
         """The scan registered against every place (point sets), unrefined, in batches of `batch_size`."""

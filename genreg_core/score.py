@@ -229,10 +229,17 @@ def unconstrained_directions(moved: np.ndarray, target: np.ndarray | TargetIndex
         if ratio < limit:
             part, kind = (v[:3], "translation along") if np.linalg.norm(v[:3]) >= np.linalg.norm(v[3:]) \
                 else (v[3:], "rotation about")
-            u = part / np.linalg.norm(part)
-            u = u if u[np.argmax(np.abs(u))] > 0 else -u  # one sign for a line of directions
-            texts.append(f"{kind} ({u[0]:.2f}, {u[1]:.2f}, {u[2]:.2f})")
+            texts.append(motion(kind, part))
     return tuple(texts), float(min(1.0, ratios[0] / limit))
+
+
+def motion(kind: str, direction: np.ndarray) -> str:
+    """An unconstrained motion's text: `kind` ("translation along", "rotation about") and the unit
+    direction, one sign for a line of directions (its largest component positive): "translation along (x,
+    y, z)"."""
+    u = np.asarray(direction, dtype=np.float64) / max(float(np.linalg.norm(direction)), 1e-12)
+    u = u if u[np.argmax(np.abs(u))] > 0 else -u
+    return f"{kind} ({u[0]:.2f}, {u[1]:.2f}, {u[2]:.2f})"
 
 
 def pose_covariance(moved: np.ndarray, target: np.ndarray | TargetIndex, origin: np.ndarray, max_distance: float,
