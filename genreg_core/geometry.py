@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import numpy as np
 import torch
+from scipy.linalg import fractional_matrix_power
 from scipy.spatial.transform import Rotation
 
 from genreg_core import kernels
@@ -48,6 +49,26 @@ def invert_transform(T: ArrayLike) -> ArrayLike:
     inv[..., :3, 3:] = -(Rt @ t)
     inv[..., 3, 3] = 1.0
     return inv
+
+
+def extrapolate(T_prev: np.ndarray, T_last: np.ndarray, ratio: float) -> np.ndarray:
+    """Constant velocity: `T_last` moved on by the motion from `T_prev` to it (T_prev^-1 T_last, the same
+    screw motion: scipy's fractional_matrix_power) taken `ratio` times; 0 gives T_last, 1 repeats the
+    motion. Both poses map the same moving frame into the same fixed one (T_map_scan of two scans). Their
+    rotations are taken as the nearest rotations (scipy's `Rotation.from_matrix`), so the result is rigid
+    however many poses were predicted from predictions (an ICP's pose drifts off orthonormal by ~1e-5)."""
+    prev, last = rigid(T_prev), rigid(T_last)
+    step = np.real(fractional_matrix_power(invert_transform(prev) @ last, float(ratio)))
+    return rigid(last @ step)
+
+
+def rigid(T: np.ndarray) -> np.ndarray:
+    """A 4x4 transform (float64 copy) with its rotation replaced by the nearest rotation and its last row
+    (0, 0, 0, 1)."""
+    out = np.array(T, dtype=np.float64)
+    out[:3, :3] = Rotation.from_matrix(out[:3, :3]).as_matrix()
+    out[3] = (0.0, 0.0, 0.0, 1.0)
+    return out
 
 
 def apply_transform(T: ArrayLike, points: ArrayLike) -> ArrayLike:

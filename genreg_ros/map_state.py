@@ -24,7 +24,7 @@ from __future__ import annotations
 import threading
 from dataclasses import dataclass
 
-from genreg_ros.tracking import Start
+from genreg_ros.tracking import TRACKED, Start
 
 GLOBAL, TRACKING, LOST = "global", "tracking", "lost"
 STATES = (GLOBAL, TRACKING, LOST)
@@ -93,6 +93,6 @@ def scan_start(step: Step, start: Start) -> tuple[Step, Start]:
     """How a scan is localised: `start` is the tracker's (a topic guess, else the last accepted pose, else
     none). A topic guess is used in every state; the last pose only in state tracking (global and lost
     localise without a guess). The returned step's mode is tracking when there is a guess, else global."""
-    if step.mode == GLOBAL and start.origin == "last_result":
+    if step.mode == GLOBAL and start.origin in TRACKED:
         start = Start(None, "none", start.discarded, start.note)
     return Step(GLOBAL if start.T is None else TRACKING, step.generation), start

@@ -47,7 +47,7 @@ from genreg_ros.policy import Verdict, judge
 from genreg_ros.publication import Outputs, Publication, Statuses, pair_header
 from genreg_ros.registrar import Registering
 from genreg_ros.sync import PairSync
-from genreg_ros.tracking import Start, Tracker
+from genreg_ros.tracking import TRACKED, Start, Tracker
 
 if TYPE_CHECKING:
     from collections.abc import Callable
@@ -205,11 +205,14 @@ class Pipeline(ABC):
                 self._settings_of = (c, settings)
             return settings
 
-    def _start(self, c: NodeConfig, pair: CloudPair, tracking: bool | None = None, parameter: bool = True) -> Start:
-        """The pair's start (`Tracker.start`); a topic guess discarded on the way is logged (expired) or counted
-        as a drop (frames that are not the pair's)."""
+    def _start(self, c: NodeConfig, pair: CloudPair, tracking: bool | None = None, parameter: bool = True,
+               predict: bool = False) -> Start:
+        """The pair's start (`Tracker.start`; `predict`: the last result moved on to the pair's source stamp); a
+        topic guess discarded on the way is logged (expired) or counted as a drop (frames that are not the
+        pair's)."""
         start = self._ctx.tracker.start(c, pair.source.frame, pair.target.frame, time.monotonic(),
-                                        tracking=tracking, parameter=parameter)
+                                        tracking=tracking, parameter=parameter,
+                                        stamp=pair.source_stamp if predict else None)
         if start.discarded == "expired":
             self._ctx.report.info(start.note)
         elif start.discarded:
@@ -232,7 +235,8 @@ class Pipeline(ABC):
         if verdict.low_confidence:  # published, yet flagged: a user must not mistake it for a good result
             ctx.report.warn("low_confidence", f"published a low-confidence result: confidence {result.confidence:.2f} "
                             f"< warn_confidence {c.warn_confidence} (fitness {result.fitness:.2f})")
-        ctx.tracker.record(result.transformation, pair.source_stamp, generation, time.monotonic())
+        ctx.tracker.record(result.transformation, pair.source_stamp, generation, time.monotonic(),
+                           continues=start.origin in TRACKED)
         return Publication(status, Outputs(header, prepared.source, pair.source.frame, result, latency,
                                            prepared.decode_s, figures(prepared, result, *times),
                                            verdict.low_confidence, registered_decoded))
@@ -337,7 +341,8 @@ class MapPipeline(Pipeline):
         t0 = time.perf_counter()
         localizer = self._map_localizer(registrar, c, prepared.target_points, pair.target.frame)
         generation = self._ctx.tracker.generation
-        step, start = scan_start(self._state.step(), self._start(c, pair, tracking=True, parameter=False))
+        step, start = scan_start(self._state.step(), self._start(c, pair, tracking=True, parameter=False,
+                                                                 predict=c.map.predict_motion))
         t1 = time.perf_counter()
         try:
             result = localizer.localize(prepared.source_points, initial_guess=start.T)

@@ -6,7 +6,9 @@ a pair's registration (`Tracker.start`) is, in this order of preference:
   initial_guess_timeout, 0: never) or names other frames than the pair's (both discard it), or, when
   tracking, a result newer than it exists;
 - the last result (use_last_result_as_guess), recorded only for pairs taken since the last reset and never
-  replaced by the result of an older pair (several workers finish out of order);
+  replaced by the result of an older pair (several workers finish out of order); given the pair's source
+  stamp (map mode, `map.predict_motion`), moved on at the velocity of the last two results (origin
+  `predicted`, `Tracker.predicted`);
 - the initial_guess parameter;
 - none.
 `reset` forgets the topic guess and the last result and starts a new generation: a result of a pair taken
@@ -20,9 +22,14 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from genreg_core.geometry import extrapolate
 from genreg_ros.config import NodeConfig
 
-ORIGINS = ("none", "parameter", "initial_guess", "initialpose", "last_result")  # registration_status values
+ORIGINS = ("none", "parameter", "initial_guess", "initialpose", "last_result", "predicted")  # registration_status values
+TRACKED = ("last_result", "predicted")  # the origins that continue the tracked motion
+# the last result is moved on by at most this many times the motion between the last two (a longer gap: a pause
+# or a stall, whose motion the last one no longer tells)
+MAX_EXTRAPOLATION = 5.0
 
 
 @dataclass(frozen=True)
@@ -57,6 +64,7 @@ class Tracker:
         self._last_T: np.ndarray | None = None
         self._last_time = -np.inf
         self._last_stamp = -1  # source stamp (ns) of the last result
+        self._previous: tuple[np.ndarray, int] | None = None  # the result before it and its stamp
         self._generation = 0
 
     @property
@@ -79,11 +87,23 @@ class Tracker:
         with self._lock:
             self._guess = TopicGuess(T, parent, child, now, origin)
 
+    def predicted(self, stamp: int) -> np.ndarray | None:
+        """The last result moved on to source stamp `stamp` (ns) at the velocity of the last two results
+        (`geometry.extrapolate`, at most `MAX_EXTRAPOLATION` of their interval); None when there is no
+        earlier result to take a velocity from or the stamps do not increase."""
+        with self._lock:
+            last_T, last_stamp, previous = self._last_T, self._last_stamp, self._previous
+        if last_T is None or previous is None or not previous[1] < last_stamp < stamp:
+            return None
+        ratio = min((stamp - last_stamp) / (last_stamp - previous[1]), MAX_EXTRAPOLATION)
+        return extrapolate(previous[0], last_T, ratio)
+
     def start(self, config: NodeConfig, source_frame: str, target_frame: str, now: float, *,
-              tracking: bool | None = None, parameter: bool = True) -> Start:
+              tracking: bool | None = None, parameter: bool = True, stamp: int | None = None) -> Start:
         """The start of a pair mapping `source_frame` into `target_frame` under `config`
         (initial_guess_timeout, use_last_result_as_guess, initial_guess). `tracking` overrides
-        use_last_result_as_guess; `parameter` False leaves the initial_guess parameter out (map mode)."""
+        use_last_result_as_guess; `parameter` False leaves the initial_guess parameter out (map mode);
+        `stamp`: the pair's source stamp (ns), to move the last result on to it (`predicted`; None: as kept)."""
         with self._lock:
             g, last_T, last_time = self._guess, self._last_T, self._last_time
         discarded = note = ""
@@ -103,16 +123,25 @@ class Tracker:
                 if self._guess is g:  # not replaced meanwhile
                     self._guess = None
         if tracking and last_T is not None:
+            ahead = None if stamp is None else self.predicted(stamp)
+            if ahead is not None:
+                return Start(ahead, "predicted", discarded, note)
             return Start(last_T, "last_result", discarded, note)
         T = config.initial_guess_matrix() if parameter else None
         return Start(T, "none" if T is None else "parameter", discarded, note)
 
-    def record(self, T: np.ndarray, source_stamp: int, generation: int, now: float) -> bool:
+    def record(self, T: np.ndarray, source_stamp: int, generation: int, now: float, continues: bool = True) -> bool:
         """Keep a published result for tracking, unless a reset came after its pair was taken (`generation`
-        is not the current one) or a newer pair's result is already kept. Whether it was kept."""
+        is not the current one) or a newer pair's result is already kept. `continues`: the pair started
+        from the last result (origin in `TRACKED`), so the motion from it is the velocity `predicted` goes on
+        with (a pose found without it, or from a topic guess, starts afresh). Whether it was kept."""
         with self._lock:
             if generation != self._generation or source_stamp < self._last_stamp:
                 return False
+            if not continues:
+                self._previous = None
+            elif self._last_T is not None and source_stamp > self._last_stamp:
+                self._previous = (self._last_T, self._last_stamp)
             self._last_T, self._last_time, self._last_stamp = T, now, source_stamp
             return True
 
@@ -120,4 +149,5 @@ class Tracker:
         """Forget the topic guess and the last result; results of pairs taken before now are not recorded."""
         with self._lock:
             self._guess, self._last_T, self._last_time, self._last_stamp = None, None, -np.inf, -1
+            self._previous = None
             self._generation += 1

@@ -16,7 +16,7 @@ hold, at `test_poses` (0.6-2 m off the centre-lines, any heading; 1.8 m above th
 robot's height of `survey_poses`). A scan's truth is T_map_scan = T_world_sensor (maps are in the world
 frame). Placed: RE < 2 deg and TE < 0.25 m; accepted: confidence >= 0.5; confident-wrong: accepted and not
 placed. Random streams (numpy default_rng of [seed, stream]): road poses 1, indoor poses 2, their scans 3,
-curve 10 + size, track 20, off-map 30, beyond 40.
+curve 10 + size, track 20, off-map 30, beyond 40, track-indoor 50, walk-indoor 60.
 
 Sections (--sections, comma separated):
   global     the (4, 3)-block world's map: points (before and after the map voxel), area, places; road and
@@ -38,12 +38,19 @@ Sections (--sections, comma separated):
              jittered by 2 cm): MapLocalizer construction (the model's checkpoint included), place index and
              GICP map, first with an empty cache_dir, then 3 times from it (the median is the load time), each
              in a fresh process (peak resident memory: its VmHWM)
-  track      a 10 Hz drive along the longest street (not the terraced one), 1 m between scans, 1 m off its
-             centre-line, an HDL-64-like sensor at 2048 columns (~100k points): the first scan localised
-             without a guess, each next one from the previous result's pose; lost: a scan not placed
+  track      10 Hz drives along the longest street (not the terraced one), 1 and 2 m between scans (10 and 20
+             m/s), 1 m off its centre-line, an HDL-64-like sensor at 2048 columns (~100k points): the first
+             scan localised without a guess, each next one as register_node starts it in map mode
+             (`follow`), from the last accepted pose and from it moved on at the last two poses' velocity
+             (`map.predict_motion`); lost: a scan not placed
   track-indoor the global section's corridor scans (--indoor-scans, its poses) localised from guesses off the
              truth by 0.3 m and 3 deg, and by 1 m and 10 deg (each in a random direction and turn): placed,
              confident-wrong, TE, the largest error along the corridor of an accepted pose
+  walk-indoor a 10 Hz walk at 1.5 m/s (0.15 m between scans, --walk-scans of them) along the main corridor,
+             0.5 m right of its centre-line, at the indoor scans' height and sensor: the first scan from its
+             true pose (as an operator's `initialpose` gives it), each next one as in track (both guesses);
+             TE (and its share >= 0.1 m), the error along the corridor, the poses named as well fitted
+             along it (`flat_fit`); lost: a scan not placed
   offmap     scans of another world (seed + 1) localised in the map: accepted count, time
   mirrored   the first --mirrored-scans road scans of the global section mirrored left to right in the
              sensor frame (y -> -y; z stays up): a twin street laid out as the map's mirror image, where no
@@ -76,8 +83,8 @@ from multiprocessing.connection import Connection
 from pathlib import Path
 from typing import Any, Self
 
-SECTIONS = ("global", "baselines", "curve", "build", "track", "track-indoor", "offmap", "mirrored", "beyond",
-            "picture")
+SECTIONS = ("global", "baselines", "curve", "build", "track", "track-indoor", "walk-indoor", "offmap", "mirrored",
+            "beyond", "picture")
 QUICK_SECTIONS = ("global", "curve", "track", "offmap", "mirrored", "beyond", "picture")
 HELD_OUT_SEED = 7  # the first held-out world seed
 TRAINING_SEEDS = (0, 1, 2)
@@ -105,6 +112,7 @@ def parse(argv: list[str] | None = None) -> argparse.Namespace:
     p.add_argument("--curve-scans", type=int, default=None, help="scans per world size (default 15)")
     p.add_argument("--curve-blocks", default=None, help="world sizes of the curve (default 1x1,2x1,2x2,4x3)")
     p.add_argument("--track-scans", type=int, default=None, help="scans of the drive (default 60)")
+    p.add_argument("--walk-scans", type=int, default=None, help="scans of the corridor walk (default 200)")
     p.add_argument("--offmap-scans", type=int, default=None, help="off-map scans (default 20)")
     p.add_argument("--mirrored-scans", type=int, default=None, help="mirrored road scans (default 20)")
     p.add_argument("--beyond-scans", type=int, default=None, help="scans beyond the partial map (default 20)")
@@ -124,7 +132,7 @@ def parse(argv: list[str] | None = None) -> argparse.Namespace:
     a.offmap_seed = a.seed + 1
     a.blocks = a.blocks or ((1, 1) if quick else (4, 3))
     defaults = {"scans": (6, 40), "indoor_scans": (2, 10), "curve_scans": (3, 15), "track_scans": (8, 60),
-                "offmap_scans": (3, 20), "mirrored_scans": (3, 20), "beyond_scans": (4, 20)}
+                "walk_scans": (20, 200), "offmap_scans": (3, 20), "mirrored_scans": (3, 20), "beyond_scans": (4, 20)}
     for name, (q, full) in defaults.items():
         if getattr(a, name) is None:
             setattr(a, name, q if quick else full)
@@ -147,12 +155,13 @@ from tqdm import tqdm
 from genreg_core.config import SCENE_MODEL, SCENE_REGISTRATION, LocalizationConfig
 from genreg_core.data import lidar_world as lw
 from genreg_core.data.synthetic_lidar import LidarSensor, sensor_pose
-from genreg_core.localization import MapLocalizer
+from genreg_core.localization import AS_WELL_FITTED, MapLocalizer
 from genreg_core.metrics import transform_errors
 from genreg_core.preprocess import voxel_downsample
 from genreg_core.registration import Registrar
 from genreg_core.result import RegistrationResult
-from genreg_ros.config import LIDAR_MAP_OVERRIDES
+from genreg_ros.config import LIDAR_MAP_OVERRIDES, NodeConfig
+from genreg_ros.tracking import TRACKED, Tracker
 
 GATE = 0.5  # accepted: confidence at least this
 MAX_RE_DEG = 2.0  # placed: rotation error below this, deg
@@ -170,8 +179,14 @@ JITTER_M = 0.02  # build: the top-up points' jitter (normal, per axis), m
 INDOOR_HEIGHT = float(inspect.signature(lw.survey_poses).parameters["indoor_height"].default)
 MIRROR = np.array([1.0, -1.0, 1.0])  # the mirrored section's scans: y -> -y in the sensor frame
 STREAMS = {"roads": 1, "indoor": 2, "scans": 3, "curve": 10, "track": 20, "offmap": 30, "beyond": 40,
-           "track-indoor": 50}
+           "track-indoor": 50, "walk-indoor": 60}
 INDOOR_GUESSES = ((0.3, 3.0), (1.0, 10.0))  # track-indoor: the guesses' offsets from the truth (m, deg)
+SCAN_PERIOD_NS = 100_000_000  # track, walk-indoor: a scan every 100 ms (10 Hz)
+GUESSES = {False: "the last pose", True: "predicted (constant velocity)"}  # track, walk-indoor: map.predict_motion
+FOLLOW_HEAD = ["step", "guess", "scans", "tracked ms median", "tracked ms p95", "TE median m", "TE max m",
+               "RE max deg", "confidence median (min)", "lost"]
+WALK_STEP = 0.15  # walk-indoor: 1.5 m/s at 10 Hz, m between scans
+WALK_OFFSET = 0.5  # walk-indoor: to the right of the main corridor's centre-line, m
 BASELINES = ("kiss-matcher+p2plane", "fpfh+ransac+icp")
 
 
@@ -546,34 +561,22 @@ class Bench:
         a = self.args
         s = self.main
         w = s.world
-        poses = drive_poses(w, a.track_scans)
-        rng = rng_of("track", a.seed)
-        recs: list[dict[str, Any]] = []
-        guess = None
-        scans = world_scans(w, poses, rng, "track", TRACK_SENSOR)
-        for i, (T, scan) in enumerate(progress(list(zip(poses, scans)), "track")):
-            rec, result = localise(s.loc, scan, T, "track", "first" if guess is None else "tracked", i, guess,
-                                   diagnose=False)
-            recs.append(rec)
-            guess = result.transformation
-        self.report.records += recs
-        tracked = [r for r in recs if r["guess"]]
-        first = recs[0]
-        ms = [1000 * r["seconds"] for r in tracked]
-        te = [r["te_m"] for r in recs]
-        self.report.add(f"## Tracking: a 10 Hz drive, {len(recs)} scans 1 m apart on {w.key}", "",
-                        f"From {pose_text(poses[0])} to {pose_text(poses[-1])}, {TRACK_OFFSET:g} m off the street's "
-                        f"centre-line; {TRACK_SENSOR.beams} beams x {TRACK_SENSOR.columns} columns, "
-                        f"{np.mean([r['points'] for r in recs]):,.0f} points per scan (mean), 6 movers; each scan "
-                        f"from the previous result's pose (1 m behind). Load average {load_text()}.", "")
-        self.report.table(
-            ["scans", "first scan (no guess)", "tracked ms median", "tracked ms p95", "TE median m", "TE max m",
-             "RE max deg", "confidence median (min)", "lost"],
-            [[str(len(recs)), f"{'placed' if first['placed'] else 'NOT placed'}, {first['seconds'] * 1000:.0f} ms",
-              fmt(pct(ms, 50)), fmt(pct(ms, 95)), fmt(pct(te, 50), 3), fmt(max(te), 3),
-              fmt(max(r["re_deg"] for r in recs), 2),
-              f"{np.median([r['confidence'] for r in tracked]):.2f} ({min(r['confidence'] for r in tracked):.2f})"
-              if tracked else "-", str(sum(not r["placed"] for r in recs))]])
+        rows, steps = [], (1, 2)
+        for step in steps:
+            poses = drive_poses(w, a.track_scans * step)[::step]
+            scans = world_scans(w, poses, rng_of("track", a.seed, step - 1), f"track {step} m", TRACK_SENSOR)
+            for predict in (False, True):
+                kind = f"{step} m, {'predicted' if predict else 'last pose'}"
+                recs = follow(s.loc, poses, scans, "track", kind, None, predict)
+                self.report.records += recs
+                rows.append([f"{step} m ({10 * step} m/s)", GUESSES[predict], *follow_row(recs)])
+        self.report.add(f"## Tracking: a 10 Hz drive, {a.track_scans} scans 1 or 2 m apart on {w.key}", "",
+                        f"Along the longest street from {pose_text(drive_poses(w, 1)[0])}, {TRACK_OFFSET:g} m off its "
+                        f"centre-line; {TRACK_SENSOR.beams} beams x {TRACK_SENSOR.columns} columns, about 100k "
+                        "points per scan, 6 movers; the first scan without a guess, each next one as register_node "
+                        "starts it in map mode (`follow`): a scan that moved beyond GICP's reach from its guess, "
+                        f"or an unsure one, is searched by the place index. Load average {load_text()}.", "")
+        self.report.table(FOLLOW_HEAD, rows)
 
     def run_track_indoor(self) -> None:
         a = self.args
@@ -611,6 +614,34 @@ class Bench:
                         f"average {load_text()}.", "")
         self.report.table(["guess off by", "scans", "placed", "confident-wrong", "TE median m",
                            "largest error along the corridor, accepted m", "confident-wrong: TE at confidence", "ms median"], rows)
+
+    def run_walk_indoor(self) -> None:
+        a = self.args
+        s = self.main
+        w = s.world
+        if not w.indoor:
+            return
+        poses = walk_poses(w, a.walk_scans)
+        scans = world_scans(w, poses, rng_of("walk-indoor", a.seed), "walk")
+        axis = corridor_axis(w, poses[0])
+        rows = []
+        for predict in (False, True):
+            recs = follow(s.loc, poses, scans, "walk-indoor", "predicted" if predict else "last pose", poses[0],
+                          predict)
+            for r in recs:
+                r["along_m"] = abs(float((np.asarray(r["estimate"])[:2, 3] - np.asarray(r["truth"])[:2, 3]) @ axis))
+            self.report.records += recs
+            te = [r["te_m"] for r in recs]
+            named = sum(any(AS_WELL_FITTED in m for m in r["unconstrained"]) for r in recs)
+            rows.append([GUESSES[predict], *follow_row(recs), str(sum(t >= 0.1 for t in te)),
+                         fmt(max(r["along_m"] for r in recs), 3), str(named)])
+        self.report.add(f"## Tracking in a corridor: a 10 Hz walk, {len(poses)} scans {WALK_STEP:g} m apart on {w.key}", "",
+                        f"From {pose_text(poses[0])} to {pose_text(poses[-1])} along the main corridor, {WALK_OFFSET:g} m "
+                        f"right of its centre-line, {INDOOR_HEIGHT:g} m high; {SCAN_SENSOR.beams} beams x "
+                        f"{SCAN_SENSOR.columns} columns, 6 movers; the first scan from its true pose (as an "
+                        "`initialpose`), each next one as register_node starts it in map mode (`follow`). Load "
+                        f"average {load_text()}.", "")
+        self.report.table(FOLLOW_HEAD[1:] + ["TE >= 0.1 m", "along the corridor max m", "named as well fitted"], rows)
 
     def run_offmap(self) -> None:
         a = self.args
@@ -740,6 +771,51 @@ def drive_poses(world: lw.World, n: int) -> np.ndarray:
         T = np.eye(4)
         T[:2, :2] = [[c, -sn], [sn, c]]
         T[:3, 3] = [p[0], p[1], 1.8]
+        out.append(T)
+    return np.asarray(out)
+
+
+def follow(loc: MapLocalizer, poses: np.ndarray, scans: list[np.ndarray], section: str, kind: str,
+           first: np.ndarray | None, predict: bool) -> list[dict[str, Any]]:
+    """Scans taken 100 ms apart localised one after another, each started as register_node's map mode starts
+    it (its `Tracker`): the first from `first` (None: without a guess), each next one from the last accepted
+    pose (confidence >= GATE, the node's min_confidence), moved on at the velocity of the last two when
+    `predict` (`map.predict_motion`)."""
+    tracker, recs, config = Tracker(), [], NodeConfig()
+    for i, (T, scan) in enumerate(progress(list(zip(poses, scans)), f"{section} {kind}")):
+        stamp = i * SCAN_PERIOD_NS
+        start = tracker.start(config, "scan", "map", float(i), tracking=True, parameter=False,
+                              stamp=stamp if predict else None)
+        guess = first if i == 0 else start.T
+        rec, result = localise(loc, scan, T, section, kind, i, guess, diagnose=False)
+        recs.append(rec)
+        if result.confidence >= GATE:
+            tracker.record(result.transformation, stamp, tracker.generation, float(i),
+                           continues=i > 0 and start.origin in TRACKED)
+    return recs
+
+
+def follow_row(recs: list[dict[str, Any]]) -> list[str]:
+    """`FOLLOW_HEAD`'s cells after the first two, of `follow`'s records (the first scan's time left out)."""
+    tracked = recs[1:]
+    ms, te = [1000 * r["seconds"] for r in tracked], [r["te_m"] for r in recs]
+    return [str(len(recs)), fmt(pct(ms, 50)), fmt(pct(ms, 95)), fmt(pct(te, 50), 3), fmt(max(te), 3), fmt(max(r["re_deg"] for r in recs), 2),
+            f"{np.median([r['confidence'] for r in tracked]):.2f} ({min(r['confidence'] for r in tracked):.2f})",
+            str(sum(not r["placed"] for r in recs))]
+
+
+def walk_poses(world: lw.World, n: int) -> np.ndarray:
+    """(n, 4, 4) T_world_sensor `WALK_STEP` m apart along the main corridor (`World.indoor[0]`) from its start (as
+    far as it reaches), `WALK_OFFSET` m right of its centre-line, heading along it, at the indoor height."""
+    a, b = world.indoor[0][0], world.indoor[0][-1]
+    length = float(np.linalg.norm(b - a))
+    u = (b - a) / length
+    out = []
+    for s in np.minimum(np.arange(n) * WALK_STEP, length):
+        T = np.eye(4)
+        T[:2, :2] = [[u[0], -u[1]], [u[1], u[0]]]
+        T[:2, 3] = a + u * s + np.array([u[1], -u[0]]) * WALK_OFFSET
+        T[2, 3] = INDOOR_HEIGHT
         out.append(T)
     return np.asarray(out)
 
@@ -1001,6 +1077,7 @@ def main() -> int:
     runs: dict[str, Callable[[], None]] = {
         "global": bench.run_global, "baselines": bench.run_baselines, "curve": bench.run_curve,
         "build": bench.run_build, "track": bench.run_track, "track-indoor": bench.run_track_indoor,
+        "walk-indoor": bench.run_walk_indoor,
         "offmap": bench.run_offmap, "mirrored": bench.run_mirrored,
         "beyond": bench.run_beyond, "picture": bench.run_picture}
     for name in SECTIONS:

@@ -11,8 +11,10 @@ from scipy.spatial.transform import Rotation
 from genreg_core.geometry import (
     apply_transform,
     denormalize_transform,
+    extrapolate,
     invert_transform,
     kabsch,
+    make_transform,
     normalize_pair,
     params_to_transform,
     random_transform,
@@ -148,3 +150,31 @@ def test_det3_equals_torch_linalg_det():
 
     M = torch.randn(4, 50, 3, 3, dtype=torch.float64, generator=torch.Generator().manual_seed(0))
     torch.testing.assert_close(det3(M), torch.linalg.det(M), rtol=1e-12, atol=1e-12)
+
+
+def test_extrapolate_goes_on_along_a_constant_twist():
+    """A vehicle on a constant twist (a helix: turning while it drives and climbs): its pose at time t is
+    T0 expm(t xi), so from the poses at t = 1 and 2 the pose at 2 + r is predicted for any r (scipy's expm
+    and the twist are the truth)."""
+    from scipy.linalg import expm
+
+    rng = np.random.default_rng(3)
+    T0 = make_transform(Rotation.random(random_state=3).as_matrix(), rng.normal(size=3))
+    xi = np.zeros((4, 4))
+    w, v = np.array([0.02, -0.03, 0.4]), np.array([1.8, 0.2, 0.05])
+    xi[:3, :3] = [[0.0, -w[2], w[1]], [w[2], 0.0, -w[0]], [-w[1], w[0], 0.0]]
+    xi[:3, 3] = v
+    pose = [T0 @ expm(t * xi) for t in (1.0, 2.0)]
+    for r in (0.0, 0.5, 1.0, 2.5):
+        np.testing.assert_allclose(extrapolate(pose[0], pose[1], r), T0 @ expm((2.0 + r) * xi), atol=1e-9)
+    # standing still: the pose stays, whatever the ratio
+    np.testing.assert_allclose(extrapolate(pose[1], pose[1], 3.0), pose[1], atol=1e-12)
+    # poses a little off orthonormal (as ICP returns them) give a rigid prediction, however often repeated
+    drift = np.eye(4)
+    drift[:3, :3] += 3e-5 * rng.normal(size=(3, 3))
+    a, b = pose[0] @ drift, pose[1] @ drift
+    for _ in range(200):
+        a, b = b, extrapolate(a, b, 1.0) @ drift
+    R = extrapolate(a, b, 1.0)[:3, :3]
+    np.testing.assert_allclose(R @ R.T, np.eye(3), atol=1e-12)
+    assert np.linalg.det(R) > 0

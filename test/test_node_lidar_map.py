@@ -48,6 +48,7 @@ from genreg_core.data.lidar_world import (
 from genreg_ros.config import CONFIG_DIR
 from genreg_ros.conversions import msg_to_matrix
 from genreg_ros.pointcloud2 import array_to_msg, read_points
+from genreg_ros.tracking import TRACKED
 
 REPO = Path(__file__).resolve().parent.parent
 LIDAR = "velodyne"
@@ -333,13 +334,15 @@ def test_first_scan_is_placed_without_a_guess(run):
 
 
 def test_the_drive_is_tracked(run):
-    """After the first placement every scan taken is tracked from the last pose and published right."""
+    """After the first placement every scan taken is tracked from the last pose (the profile's
+    map.predict_motion: moved on at the last two poses' velocity once there are two) and published right."""
     later = answered(run, "start")[1:] + answered(run, "drive")
     drive = answered(run, "drive")
     assert len(drive) >= 2, f"only {len(drive)} of the drive's {sum(s.phase == 'drive' for s in run.sent)} scans taken"
     for sent, status in later:
-        assert status["localization"] == "tracking" and status["initial_guess"] == "last_result", status
+        assert status["localization"] == "tracking" and status["initial_guess"] in TRACKED, status
         assert status["published"] == "true" and right(run, sent), (sent.phase, pose_error(run, sent), status)
+    assert [v["initial_guess"] for _, v in later][1:] == ["predicted"] * (len(later) - 1), later
 
 
 def test_a_kidnapped_vehicle_is_placed_again(run):

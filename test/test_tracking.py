@@ -16,7 +16,7 @@ from genreg_ros import map_state
 from genreg_ros.config import MapParams, NodeConfig
 from genreg_ros.map_state import GLOBAL, LOST, Localization, scan_start
 from genreg_ros.policy import judge
-from genreg_ros.tracking import Tracker
+from genreg_ros.tracking import MAX_EXTRAPOLATION, Start, Tracker
 
 
 def shift(x: float) -> np.ndarray:
@@ -84,6 +84,46 @@ def test_tracking_uses_the_last_result_unless_a_newer_guess_arrived():
     assert t.record(shift(4.0), source_stamp=200, generation=t.generation, now=3.0)  # newer than the guess
     s = t.start(TRACKING, "lidar", "map", now=3.5)
     assert s.origin == "last_result" and s.T[0, 3] == 4.0
+
+
+def test_tracking_moves_the_last_result_on_at_the_velocity_of_the_last_two():
+    """Map mode passes the scan's stamp: the last pose goes on at the last two poses' velocity, scaled by the
+    stamps (1 m per 100 ms here), capped at MAX_EXTRAPOLATION intervals; a pose that did not start from the
+    last result (found without a guess, or from a topic guess) starts the motion afresh."""
+    t = Tracker()
+    g = t.generation
+    ms = 1_000_000  # ns
+    assert t.start(TRACKING, "lidar", "map", now=0.0, stamp=100 * ms).origin == "parameter"  # nothing kept yet
+    assert t.record(shift(1.0), source_stamp=100 * ms, generation=g, now=1.0, continues=False)  # placed globally
+    s = t.start(TRACKING, "lidar", "map", now=1.5, stamp=200 * ms)  # one pose: no velocity yet
+    assert s.origin == "last_result" and s.T[0, 3] == 1.0 and t.predicted(200 * ms) is None
+    assert t.record(shift(2.0), source_stamp=200 * ms, generation=g, now=2.0)
+    s = t.start(TRACKING, "lidar", "map", now=2.5, stamp=300 * ms)
+    assert s.origin == "predicted" and s.T[0, 3] == pytest.approx(3.0)
+    assert t.start(TRACKING, "lidar", "map", now=2.5, stamp=250 * ms).T[0, 3] == pytest.approx(2.5)
+    s = t.start(TRACKING, "lidar", "map", now=2.5)  # no stamp: the last result as kept
+    assert s.origin == "last_result" and s.T[0, 3] == 2.0
+    far = 200 * ms + int(10 * MAX_EXTRAPOLATION) * 100 * ms  # a long gap: at most MAX_EXTRAPOLATION intervals
+    assert t.predicted(far)[0, 3] == pytest.approx(2.0 + MAX_EXTRAPOLATION)
+    s = t.start(TRACKING, "lidar", "map", now=2.5, stamp=150 * ms)  # before the last result: not extrapolated back
+    assert s.origin == "last_result" and s.T[0, 3] == 2.0
+    assert t.record(shift(2.0), source_stamp=200 * ms, generation=g, now=2.6)  # the same stamp again
+    assert t.predicted(300 * ms)[0, 3] == pytest.approx(3.0)  # ... keeps the velocity
+    assert t.record(shift(40.0), source_stamp=300 * ms, generation=g, now=3.0, continues=False)  # a kidnap
+    assert t.predicted(400 * ms) is None  # the jump is no velocity
+    assert t.start(TRACKING, "lidar", "map", now=3.5, stamp=400 * ms).T[0, 3] == 40.0
+    t.reset()
+    assert t.predicted(400 * ms) is None
+    assert t.start(TRACKING, "lidar", "map", now=4.0, stamp=500 * ms).origin == "parameter"  # nothing tracked
+
+
+def test_in_state_global_a_tracked_start_is_dropped_and_a_topic_guess_kept():
+    """Global and lost localise without a guess: the last pose, moved on or not, is not used there."""
+    for origin in ("last_result", "predicted"):
+        step, start = scan_start(map_state.Step(GLOBAL, 3), Start(shift(1.0), origin))
+        assert (step.mode, step.generation, start.T, start.origin) == (GLOBAL, 3, None, "none")
+    step, start = scan_start(map_state.Step(GLOBAL, 3), Start(shift(1.0), "initialpose"))
+    assert step.mode == map_state.TRACKING and start.origin == "initialpose"
 
 
 def test_an_older_pairs_result_never_replaces_a_newer_one():
