@@ -42,15 +42,16 @@ Sections (--sections, comma separated):
              m/s), 1 m off its centre-line, an HDL-64-like sensor at 2048 columns (~100k points): the first
              scan localised without a guess, each next one as register_node starts it in map mode
              (`follow`), from the last accepted pose and from it moved on at the last two poses' velocity
-             (`map.predict_motion`); lost: a scan not placed
+             (`map.predict_motion`), judged as the node judges it (`follow`): scans not published, in state
+             lost (no guess after 2 misses), published but not placed
   track-indoor the global section's corridor scans (--indoor-scans, its poses) localised from guesses off the
              truth by 0.3 m and 3 deg, and by 1 m and 10 deg (each in a random direction and turn): placed,
              confident-wrong, TE, the largest error along the corridor of an accepted pose
   walk-indoor a 10 Hz walk at 1.5 m/s (0.15 m between scans, --walk-scans of them) along the main corridor,
              0.5 m right of its centre-line, at the indoor scans' height and sensor: the first scan from its
              true pose (as an operator's `initialpose` gives it), each next one as in track (both guesses);
-             TE (and its share >= 0.1 m), the error along the corridor, the poses named as well fitted
-             along it (`flat_fit`); lost: a scan not placed
+             TE (and the published poses >= 0.1 m off), the error along the corridor, the poses named as well
+             fitted along it (`flat_fit`)
   offmap     scans of another world (seed + 1) localised in the map: accepted count, time
   mirrored   the first --mirrored-scans road scans of the global section mirrored left to right in the
              sensor frame (y -> -y; z stays up): a twin street laid out as the map's mirror image, where no
@@ -161,6 +162,8 @@ from genreg_core.preprocess import voxel_downsample
 from genreg_core.registration import Registrar
 from genreg_core.result import RegistrationResult
 from genreg_ros.config import LIDAR_MAP_OVERRIDES, NodeConfig
+from genreg_ros.map_state import LOST, Localization, scan_start
+from genreg_ros.policy import judge
 from genreg_ros.tracking import TRACKED, Tracker
 
 GATE = 0.5  # accepted: confidence at least this
@@ -184,7 +187,7 @@ INDOOR_GUESSES = ((0.3, 3.0), (1.0, 10.0))  # track-indoor: the guesses' offsets
 SCAN_PERIOD_NS = 100_000_000  # track, walk-indoor: a scan every 100 ms (10 Hz)
 GUESSES = {False: "the last pose", True: "predicted (constant velocity)"}  # track, walk-indoor: map.predict_motion
 FOLLOW_HEAD = ["step", "guess", "scans", "tracked ms median", "tracked ms p95", "TE median m", "TE max m",
-               "RE max deg", "confidence median (min)", "lost"]
+               "RE max deg", "confidence median (min)", "not published", "in state lost", "published wrong"]
 WALK_STEP = 0.15  # walk-indoor: 1.5 m/s at 10 Hz, m between scans
 WALK_OFFSET = 0.5  # walk-indoor: to the right of the main corridor's centre-line, m
 BASELINES = ("kiss-matcher+p2plane", "fpfh+ransac+icp")
@@ -631,17 +634,18 @@ class Bench:
             for r in recs:
                 r["along_m"] = abs(float((np.asarray(r["estimate"])[:2, 3] - np.asarray(r["truth"])[:2, 3]) @ axis))
             self.report.records += recs
-            te = [r["te_m"] for r in recs]
-            named = sum(any(AS_WELL_FITTED in m for m in r["unconstrained"]) for r in recs)
-            rows.append([GUESSES[predict], *follow_row(recs), str(sum(t >= 0.1 for t in te)),
-                         fmt(max(r["along_m"] for r in recs), 3), str(named)])
+            published = [r for r in recs if r["published"]]
+            named = sum(any(AS_WELL_FITTED in m for m in r["unconstrained"]) for r in published)
+            rows.append([GUESSES[predict], *follow_row(recs), str(sum(r["te_m"] >= 0.1 for r in published)),
+                         fmt(max((r["along_m"] for r in published), default=float("nan")), 3), str(named)])
         self.report.add(f"## Tracking in a corridor: a 10 Hz walk, {len(poses)} scans {WALK_STEP:g} m apart on {w.key}", "",
                         f"From {pose_text(poses[0])} to {pose_text(poses[-1])} along the main corridor, {WALK_OFFSET:g} m "
                         f"right of its centre-line, {INDOOR_HEIGHT:g} m high; {SCAN_SENSOR.beams} beams x "
                         f"{SCAN_SENSOR.columns} columns, 6 movers; the first scan from its true pose (as an "
                         "`initialpose`), each next one as register_node starts it in map mode (`follow`). Load "
                         f"average {load_text()}.", "")
-        self.report.table(FOLLOW_HEAD[1:] + ["TE >= 0.1 m", "along the corridor max m", "named as well fitted"], rows)
+        self.report.table(FOLLOW_HEAD[1:] + ["published >= 0.1 m off", "published: along the corridor max m",
+                                             "published: named as well fitted"], rows)
 
     def run_offmap(self) -> None:
         a = self.args
@@ -777,21 +781,27 @@ def drive_poses(world: lw.World, n: int) -> np.ndarray:
 
 def follow(loc: MapLocalizer, poses: np.ndarray, scans: list[np.ndarray], section: str, kind: str,
            first: np.ndarray | None, predict: bool) -> list[dict[str, Any]]:
-    """Scans taken 100 ms apart localised one after another, each started as register_node's map mode starts
-    it (its `Tracker`): the first from `first` (None: without a guess), each next one from the last accepted
-    pose (confidence >= GATE, the node's min_confidence), moved on at the velocity of the last two when
-    `predict` (`map.predict_motion`)."""
-    tracker, recs, config = Tracker(), [], NodeConfig()
+    """Scans taken 100 ms apart localised one after another, each started and judged as register_node's map
+    mode does (its `Tracker`, `map_state` and `policy.judge` with the default thresholds): the first from
+    `first` (an `initialpose`; None: without a guess), each next one in state tracking from the last published
+    pose, moved on at the velocity of the last two when `predict` (`map.predict_motion`), and without a guess
+    after `map.lost_after` misses in a row (state lost) until one is published. Each record has the state it
+    was reported in and whether the node would publish it."""
+    config = NodeConfig()
+    tracker, state, recs = Tracker(), Localization(config.map.lost_after), []
+    if first is not None:
+        tracker.set_guess(first, "map", None, "initialpose", -1.0)
     for i, (T, scan) in enumerate(progress(list(zip(poses, scans)), f"{section} {kind}")):
         stamp = i * SCAN_PERIOD_NS
-        start = tracker.start(config, "scan", "map", float(i), tracking=True, parameter=False,
-                              stamp=stamp if predict else None)
-        guess = first if i == 0 else start.T
-        rec, result = localise(loc, scan, T, section, kind, i, guess, diagnose=False)
+        step, start = scan_start(state.step(), tracker.start(config, "scan", "map", float(i), tracking=True,
+                                                             parameter=False, stamp=stamp if predict else None))
+        rec, result = localise(loc, scan, T, section, kind, i, start.T, diagnose=False)
+        publish = judge(result, config).publish
+        rec.update(state=state.update(step, publish), published=publish)
         recs.append(rec)
-        if result.confidence >= GATE:
+        if publish:
             tracker.record(result.transformation, stamp, tracker.generation, float(i),
-                           continues=i > 0 and start.origin in TRACKED)
+                           continues=start.origin in TRACKED)
     return recs
 
 
@@ -801,7 +811,8 @@ def follow_row(recs: list[dict[str, Any]]) -> list[str]:
     ms, te = [1000 * r["seconds"] for r in tracked], [r["te_m"] for r in recs]
     return [str(len(recs)), fmt(pct(ms, 50)), fmt(pct(ms, 95)), fmt(pct(te, 50), 3), fmt(max(te), 3), fmt(max(r["re_deg"] for r in recs), 2),
             f"{np.median([r['confidence'] for r in tracked]):.2f} ({min(r['confidence'] for r in tracked):.2f})",
-            str(sum(not r["placed"] for r in recs))]
+            str(sum(not r["published"] for r in recs)), str(sum(r["state"] == LOST for r in recs)),
+            str(sum(r["published"] and not r["placed"] for r in recs))]
 
 
 def walk_poses(world: lw.World, n: int) -> np.ndarray:
