@@ -457,9 +457,7 @@ class MapLocalizer:
                                  self.whole_map() if indexed else None) if self.tracking_calibrated else None
             # with the index, a track that moved beyond GICP's reach from its guess (a stale guess, which may
             # have slid onto a look-alike place along a repeating street) is checked like an unsure one
-            far = indexed and tracked is not None and distinct_poses(
-                tracked.transformation, guess, np.radians(self.registrar.config.pdsac.mode_separation),
-                c.track_distance * self.voxel_size)
+            far = indexed and tracked is not None and not self.within_reach(tracked.transformation, guess)
             if tracked is not None and tracked.confidence >= c.track_below and not far:
                 return tracked
             if indexed:  # an unsure track: the place index's answer, bounded by the track's if they differ
@@ -472,6 +470,13 @@ class MapLocalizer:
             return self.retrieved(scan)
         assert geometry is not None
         return self.chosen(self.searched(scan, geometry))
+
+    def within_reach(self, T: np.ndarray, guess: np.ndarray) -> bool:
+        """Whether the pose T_map_scan `T` lies within tracking's reach of `guess`: GICP's correspondence
+        distance (`track_distance` map voxels) and PDSAC's mode separation (a pose beyond it was not tracked
+        from the guess but found elsewhere)."""
+        return not distinct_poses(T, guess, np.radians(self.registrar.config.pdsac.mode_separation),
+                                  self.config.track_distance * self.voxel_size)
 
     def searched(self, scan: np.ndarray, geometry: tuple[np.ndarray, float, float]) -> list[RegistrationResult]:
         """The global results of a voxelised scan without a guess or an index (`geometry`: its `scan_geometry`),

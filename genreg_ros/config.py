@@ -46,6 +46,7 @@ from genreg_core.config import (
     RegistrationConfig,
     Setting,
     check_ranges,
+    from_dict,
     setting,
     settings,
 )
@@ -163,6 +164,12 @@ class MapParams:
                               "not published, e.g. its confidence is below min_confidence): the next scan is "
                               "localised without a guess (registration_status localization: lost).",
                               low=1, high=1000)
+    relocalize_confidence: float = setting(0.0, "While no pose is known (states global and lost), a pose not "
+                                           "within tracking's reach of the last accepted one is published only at "
+                                           "this confidence or more, besides min_confidence: every such scan is "
+                                           "searched again, and a look-alike place found at a near tie would be "
+                                           "tracked on (0: min_confidence alone; the LiDAR map profile: 0.8).",
+                                           low=0.0, high=1.0)
     predict_motion: bool = setting(False, "Tracking starts each scan from the last accepted pose moved on at the "
                                    "velocity of the last two (constant velocity, scaled to the scans' stamps, at "
                                    "most 5 of their intervals ahead; the LiDAR map profile: on); false: from the "
@@ -331,11 +338,14 @@ MAP_OVERRIDES: dict[str, Any] = {**SCENE_OVERRIDES, "workers": 1, "map.enabled":
 # scans confidently wrong); tracking from the last pose moved on at the last two poses' velocity (predict_motion:
 # on the training world a drive at 20 m/s tracked in 14 ms a scan against 205 from the last pose, each of whose
 # scans moved beyond GICP's reach and was searched by the index; rooms keep the last pose: at 30 Hz a hand-held
-# camera moves between frames about as much as two tracked poses differ by noise, so it changed little there)
+# camera moves between frames about as much as two tracked poses differ by noise, so it changed little there);
+# a pose found without a guess published at 0.8 or more (relocalize_confidence: on the training worlds, right ones
+# at 0.53-0.65 or 0.87 and up, wrong ones at 0.50-0.76, five of them found while tracking was lost in a corridor)
 LIDAR_MAP_OVERRIDES: dict[str, Any] = {**MAP_OVERRIDES, "map.localization.retrieve": 8,
                                        "map.localization.map_voxel": 0.2, "map.localization.threads": 1,
                                        "map.localization.verify_fitness": 0.8, "map.localization.unfit_iterations": 3,
-                                       "map.localization.flat_fit": 0.92, "map.predict_motion": True}
+                                       "map.localization.flat_fit": 0.92, "map.predict_motion": True,
+                                       "map.relocalize_confidence": 0.8}
 PROFILES: dict[str, tuple[str, dict[str, Any]]] = {
     "genreg.yaml": (f"depth-camera and indoor scenes (the scene model {SCENE_MODEL})", SCENE_OVERRIDES),
     "genreg_map.yaml": (f"map mode: depth-camera scans localised in a prior map (the scene model {SCENE_MODEL})",
@@ -425,6 +435,24 @@ def defaults(name: str = "genreg.yaml") -> dict[str, Any]:
     """Every setting's value in the shipped params file `name` (setting values, not ROS values)."""
     overrides = PROFILES[name][1]
     return {s.name: overrides.get(s.name, s.default) for s in SETTINGS}
+
+
+def node_config(values: dict[str, Any]) -> NodeConfig:
+    """The NodeConfig of setting values by name (missing ones keep their default). ConfigError names the
+    first invalid setting."""
+    nested: dict[str, Any] = {}
+    for s in SETTINGS:
+        *path, leaf = s.name.split(".")
+        group = nested
+        for part in path:
+            group = group.setdefault(part, {})
+        group[leaf] = values.get(s.name, s.default)
+    return from_dict(NodeConfig, nested)
+
+
+def profile_config(name: str = "genreg.yaml") -> NodeConfig:
+    """The NodeConfig of the shipped params file `name` (a key of PROFILES)."""
+    return node_config(defaults(name))
 
 
 def yaml_text(name: str = "genreg.yaml") -> str:

@@ -8,7 +8,10 @@ which the next scan gets:
 - `tracking`: the last accepted pose is the guess of the next scan;
 - `lost`: `map.lost_after` scans in a row missed (a miss: no pose published, i.e. the confidence is
   below `min_confidence`, the fitness below `min_fitness`, or it failed): the next scan is localised
-  without a guess, as in `global`.
+  without a guess, as in `global`; with the place index (LiDAR maps) from the last accepted pose, whose
+  unsure track is searched for in the whole map as well (`scan_start`'s `keep`).
+A pose found while no pose is known (global and lost) is published only at `map.relocalize_confidence`
+(`policy.judge`'s `relocalized`).
 A guess from a topic (`initialpose`, `initial_guess`) is used in every state (`genreg_ros.tracking`).
 A hit in any state leads to `tracking`; misses while `global` or `tracking` count towards `lost`.
 
@@ -89,10 +92,12 @@ class Localization:
             self._generation += 1
 
 
-def scan_start(step: Step, start: Start) -> tuple[Step, Start]:
+def scan_start(step: Step, start: Start, keep: bool = False) -> tuple[Step, Start]:
     """How a scan is localised: `start` is the tracker's (a topic guess, else the last accepted pose, else
-    none). A topic guess is used in every state; the last pose only in state tracking (global and lost
-    localise without a guess). The returned step's mode is tracking when there is a guess, else global."""
-    if step.mode == GLOBAL and start.origin in TRACKED:
+    none). A topic guess is used in every state; the last pose in state tracking, and in state lost when
+    `keep` (a map with the place index, whose localisation from an unsure guess also searches the whole map;
+    other maps, and global and lost without `keep`, localise without a guess). The returned step's mode is
+    tracking when there is a guess, else global."""
+    if step.mode == GLOBAL and start.origin in TRACKED and not keep:
         start = Start(None, "none", start.discarded, start.note)
     return Step(GLOBAL if start.T is None else TRACKING, step.generation), start

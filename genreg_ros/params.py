@@ -29,9 +29,18 @@ from rclpy.exceptions import ParameterException
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 
-from genreg_core.config import Setting, from_dict, settings
+from genreg_core.config import Setting, settings
 from genreg_core.errors import ConfigError
-from genreg_ros.config import DOUBLE_ARRAY, SETTINGS, NodeConfig, from_ros, optional_type, ros_kind, to_ros
+from genreg_ros.config import (
+    DOUBLE_ARRAY,
+    SETTINGS,
+    NodeConfig,
+    from_ros,
+    node_config,
+    optional_type,
+    ros_kind,
+    to_ros,
+)
 
 ROS_TYPES = {
     bool: (ParameterType.PARAMETER_BOOL, "bool"),
@@ -86,14 +95,7 @@ def check_type(s: Setting, value: Any) -> str | None:
 def to_config(values: dict[str, Any]) -> NodeConfig:
     """The NodeConfig of ROS parameter values (every setting's name; missing ones keep their default).
     ConfigError names the first invalid setting."""
-    nested: dict[str, Any] = {}
-    for s in SETTINGS:
-        *path, leaf = s.name.split(".")
-        group = nested
-        for part in path:
-            group = group.setdefault(part, {})
-        group[leaf] = from_ros(s, values[s.name]) if s.name in values else s.default
-    return from_dict(NodeConfig, nested)
+    return node_config({s.name: from_ros(s, values[s.name]) for s in SETTINGS if s.name in values})
 
 
 def ros_values(config: NodeConfig) -> dict[str, Any]:

@@ -41,7 +41,7 @@ from genreg_ros.budget import LatencyBudget
 from genreg_ros.config import NodeConfig
 from genreg_ros.diagnostics import Reporter
 from genreg_ros.intake import CloudPair, FixedTarget, Target
-from genreg_ros.map_state import LOST, TRACKING, Localization, Step, scan_start
+from genreg_ros.map_state import GLOBAL, LOST, TRACKING, Localization, Step, scan_start
 from genreg_ros.pointcloud2 import DecodedCloud, PointCloud2Error, read_points
 from genreg_ros.policy import Verdict, judge
 from genreg_ros.publication import Outputs, Publication, Statuses, pair_header
@@ -341,8 +341,10 @@ class MapPipeline(Pipeline):
         t0 = time.perf_counter()
         localizer = self._map_localizer(registrar, c, prepared.target_points, pair.target.frame)
         generation = self._ctx.tracker.generation
-        step, start = scan_start(self._state.step(), self._start(c, pair, tracking=True, parameter=False,
-                                                                 predict=c.map.predict_motion))
+        before = self._state.step()  # global (no pose known: global or lost) or tracking
+        step, start = scan_start(before, self._start(c, pair, tracking=True, parameter=False,
+                                                     predict=c.map.predict_motion),
+                                 keep=c.map.localization.retrieve > 0)
         t1 = time.perf_counter()
         try:
             result = localizer.localize(prepared.source_points, initial_guess=start.T)
@@ -350,7 +352,10 @@ class MapPipeline(Pipeline):
             self._outcome(c, step, hit=False)
             raise NotRegistered("failed", failure_reason(exc), f"localisation failed: {exc}") from None
         t2 = time.perf_counter()
-        verdict = judge(result, c)
+        # no pose known (global, lost): a pose not within tracking's reach of the last one is a relocalisation
+        relocalized = before.mode == GLOBAL and (start.T is None or not localizer.within_reach(result.transformation,
+                                                                                             start.T))
+        verdict = judge(result, c, relocalized=relocalized)
         verdict = replace(verdict, localization=self._outcome(c, step, hit=verdict.publish))  # a miss: not published
         # the registered points are the scan voxelised to the map's resolution, not the decoded ones
         return self._answer(pair, prepared, result, verdict, start, generation, (t1 - t0, t2 - t1))

@@ -3,7 +3,8 @@
 Pure Python (no rclpy): `judge(result, config)` reads the result's fitness, confidence and unconstrained
 directions and the thresholds min_fitness, min_confidence and warn_confidence, and returns a `Verdict`.
 Rejected (not published): fitness below min_fitness (`low_fitness`), else confidence below min_confidence
-(`low_confidence_rejected`). Published with a warning: confidence below warn_confidence. A result whose
+(`low_confidence_rejected`; in map mode, while no pose is known, a pose not within tracking's reach of the last
+one also below `map.relocalize_confidence`). Published with a warning: confidence below warn_confidence. A result whose
 geometry leaves directions unconstrained (the core's `unconstrained`) is published as WARN, `degenerate`.
 In map mode the message starts with the scan's localisation state (`global: published`, `lost: rejected: ...`).
 """
@@ -48,9 +49,10 @@ class Verdict:
         return f"{self.localization}: {text}" if self.localization else text
 
 
-def judge(result: RegistrationResult, config: NodeConfig) -> Verdict:
+def judge(result: RegistrationResult, config: NodeConfig, relocalized: bool = False) -> Verdict:
     """The verdict on `result` (a RegistrationResult: fitness, confidence, unconstrained) under the
-    thresholds of `config`."""
+    thresholds of `config`; `relocalized`: a map-mode pose found while no pose was known, not within tracking's
+    reach of the last one (`map.relocalize_confidence`)."""
     unconstrained = tuple(getattr(result, "unconstrained", ()) or ())
     reason, why = "", ""
     if result.fitness < config.min_fitness:
@@ -58,5 +60,8 @@ def judge(result: RegistrationResult, config: NodeConfig) -> Verdict:
     elif result.confidence < config.min_confidence:
         reason, why = "low_confidence_rejected", \
             f"confidence {result.confidence:.3f} < min_confidence {config.min_confidence}"
+    elif relocalized and result.confidence < config.map.relocalize_confidence:
+        reason, why = "low_confidence_rejected", (f"confidence {result.confidence:.3f} < map.relocalize_confidence "
+                                                  f"{config.map.relocalize_confidence} (relocalised)")
     low_confidence = not reason and result.confidence < config.warn_confidence
     return Verdict(not reason, reason, why, low_confidence, unconstrained)

@@ -161,8 +161,8 @@ from genreg_core.metrics import transform_errors
 from genreg_core.preprocess import voxel_downsample
 from genreg_core.registration import Registrar
 from genreg_core.result import RegistrationResult
-from genreg_ros.config import LIDAR_MAP_OVERRIDES, NodeConfig
-from genreg_ros.map_state import LOST, Localization, scan_start
+from genreg_ros.config import NodeConfig, profile_config
+from genreg_ros.map_state import GLOBAL, LOST, Localization, scan_start
 from genreg_ros.policy import judge
 from genreg_ros.tracking import TRACKED, Tracker
 
@@ -188,6 +188,7 @@ SCAN_PERIOD_NS = 100_000_000  # track, walk-indoor: a scan every 100 ms (10 Hz)
 GUESSES = {False: "the last pose", True: "predicted (constant velocity)"}  # track, walk-indoor: map.predict_motion
 FOLLOW_HEAD = ["step", "guess", "scans", "tracked ms median", "tracked ms p95", "TE median m", "TE max m",
                "RE max deg", "confidence median (min)", "not published", "in state lost", "published wrong"]
+LIDAR_PROFILE = "genreg_lidar_map.yaml"  # the shipped params file whose settings every section runs with
 WALK_STEP = 0.15  # walk-indoor: 1.5 m/s at 10 Hz, m between scans
 WALK_OFFSET = 0.5  # walk-indoor: to the right of the main corridor's centre-line, m
 BASELINES = ("kiss-matcher+p2plane", "fpfh+ransac+icp")
@@ -199,10 +200,14 @@ def rng_of(stream: str, seed: int, extra: int = 0) -> np.random.Generator:
     return np.random.default_rng([seed, STREAMS[stream] + extra])
 
 
+def lidar_node_config() -> NodeConfig:
+    """The shipped LiDAR map profile's node settings (`config/genreg_lidar_map.yaml`)."""
+    return profile_config(LIDAR_PROFILE)
+
+
 def lidar_config() -> LocalizationConfig:
-    """The shipped LiDAR map profile's localisation settings (`LIDAR_MAP_OVERRIDES`)."""
-    prefix = "map.localization."
-    return LocalizationConfig(**{k[len(prefix):]: v for k, v in LIDAR_MAP_OVERRIDES.items() if k.startswith(prefix)})
+    """The shipped LiDAR map profile's localisation settings."""
+    return lidar_node_config().map.localization
 
 
 def pct(values: Iterable[float], q: float) -> float:
@@ -782,21 +787,26 @@ def drive_poses(world: lw.World, n: int) -> np.ndarray:
 def follow(loc: MapLocalizer, poses: np.ndarray, scans: list[np.ndarray], section: str, kind: str,
            first: np.ndarray | None, predict: bool) -> list[dict[str, Any]]:
     """Scans taken 100 ms apart localised one after another, each started and judged as register_node's map
-    mode does (its `Tracker`, `map_state` and `policy.judge` with the default thresholds): the first from
+    mode does (its `Tracker`, `map_state` and `policy.judge` with the LiDAR map profile's settings): the first from
     `first` (an `initialpose`; None: without a guess), each next one in state tracking from the last published
-    pose, moved on at the velocity of the last two when `predict` (`map.predict_motion`), and without a guess
-    after `map.lost_after` misses in a row (state lost) until one is published. Each record has the state it
+    pose, moved on at the velocity of the last two when `predict` (`map.predict_motion`); after
+    `map.lost_after` misses in a row (state lost) from it too but searched for in the whole map as well, until
+    a pose reaches `map.relocalize_confidence`. Each record has the state it
     was reported in and whether the node would publish it."""
-    config = NodeConfig()
+    config = lidar_node_config()
     tracker, state, recs = Tracker(), Localization(config.map.lost_after), []
     if first is not None:
         tracker.set_guess(first, "map", None, "initialpose", -1.0)
     for i, (T, scan) in enumerate(progress(list(zip(poses, scans)), f"{section} {kind}")):
         stamp = i * SCAN_PERIOD_NS
-        step, start = scan_start(state.step(), tracker.start(config, "scan", "map", float(i), tracking=True,
-                                                             parameter=False, stamp=stamp if predict else None))
+        before = state.step()
+        step, start = scan_start(before, tracker.start(config, "scan", "map", float(i), tracking=True,
+                                                       parameter=False, stamp=stamp if predict else None),
+                                 keep=config.map.localization.retrieve > 0)
         rec, result = localise(loc, scan, T, section, kind, i, start.T, diagnose=False)
-        publish = judge(result, config).publish
+        relocalized = before.mode == GLOBAL and (start.T is None or not loc.within_reach(result.transformation,
+                                                                                          start.T))
+        publish = judge(result, config, relocalized=relocalized).publish
         rec.update(state=state.update(step, publish), published=publish)
         recs.append(rec)
         if publish:

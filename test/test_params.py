@@ -61,6 +61,14 @@ def test_params_file_names_and_values_match_the_dataclasses(name):
     params.check_params_file(str(CONFIG / name), "/register_node")
 
 
+@pytest.mark.parametrize("name", list(PROFILES))
+def test_a_profiles_config_is_its_params_file_read_as_the_node_reads_it(name):
+    """`config.profile_config` (what harnesses run with) against the YAML file parsed and converted by the node's
+    own `params.to_config`."""
+    doc = yaml.safe_load((CONFIG / name).read_text())
+    assert config.profile_config(name) == params.to_config(_flatten(doc["/**"]["ros__parameters"]))
+
+
 def test_scene_file_is_for_the_scene_model_and_objects_file_for_the_object_model():
     assert defaults("genreg.yaml")["model.checkpoint"] == SCENE_OVERRIDES["model.checkpoint"] == "7scenes"
     assert defaults("genreg_objects.yaml")["model.checkpoint"] == NodeConfig().model.checkpoint == "modelnet40_dgcnn"

@@ -118,12 +118,28 @@ def test_tracking_moves_the_last_result_on_at_the_velocity_of_the_last_two():
 
 
 def test_in_state_global_a_tracked_start_is_dropped_and_a_topic_guess_kept():
-    """Global and lost localise without a guess: the last pose, moved on or not, is not used there."""
+    """Global and lost localise without a guess: the last pose, moved on or not, is not used there (unless
+    `keep`)."""
     for origin in ("last_result", "predicted"):
         step, start = scan_start(map_state.Step(GLOBAL, 3), Start(shift(1.0), origin))
         assert (step.mode, step.generation, start.T, start.origin) == (GLOBAL, 3, None, "none")
     step, start = scan_start(map_state.Step(GLOBAL, 3), Start(shift(1.0), "initialpose"))
     assert step.mode == map_state.TRACKING and start.origin == "initialpose"
+    # a map with the place index keeps the last pose while lost: its unsure track is searched globally anyway
+    step, start = scan_start(map_state.Step(GLOBAL, 3), Start(shift(1.0), "predicted"), keep=True)
+    assert step.mode == map_state.TRACKING and start.origin == "predicted" and start.T[0, 3] == 1.0
+
+
+def test_a_pose_found_without_a_guess_needs_relocalize_confidence():
+    """map.relocalize_confidence holds back a relocalised pose below it; a tracked pose, or the setting at 0,
+    needs min_confidence alone."""
+    result = SimpleNamespace(fitness=0.9, confidence=0.7, unconstrained=())
+    strict = NodeConfig(map=MapParams(relocalize_confidence=0.8))
+    verdict = judge(result, strict, relocalized=True)
+    assert not verdict.publish and verdict.reason == "low_confidence_rejected"
+    assert verdict.why == "confidence 0.700 < map.relocalize_confidence 0.8 (relocalised)"
+    assert judge(result, strict).publish and judge(result, NodeConfig(), relocalized=True).publish
+    assert judge(SimpleNamespace(fitness=0.9, confidence=0.85, unconstrained=()), strict, relocalized=True).publish
 
 
 def test_an_older_pairs_result_never_replaces_a_newer_one():
