@@ -149,6 +149,20 @@ def test_gicp_on_a_prepared_target_equals_small_gicps_own_alignment(kitchen):
     assert all(e < t for e, t in zip(transform_errors(fast, seq.pose(855)), (2.0, 0.05), strict=True))
 
 
+def test_within_reach_is_tracking_gicps_distance_and_pdsacs_mode_separation(kitchen):
+    """`within_reach` (what the node tells a relocalisation by): a pose moved by less than track_distance map
+    voxels and turned by less than the mode separation is within reach of the other; beyond either, not."""
+    seq, loc = kitchen
+    T = seq.pose(850)
+    reach = loc.config.track_distance * loc.voxel_size
+    separation = loc.registrar.config.pdsac.mode_separation
+    moved = lambda metres, degrees: T @ make_transform(
+        Rotation.from_euler("z", degrees, degrees=True).as_matrix(), [metres, 0.0, 0.0])
+    assert loc.within_reach(T, T) and loc.within_reach(moved(0.9 * reach, 0.0), T)
+    assert loc.within_reach(moved(0.0, 0.9 * separation), T)
+    assert not loc.within_reach(moved(1.1 * reach, 0.0), T) and not loc.within_reach(moved(0.0, 1.1 * separation), T)
+
+
 def test_a_fused_sequence_map_is_open3ds_fusion_of_the_posed_frames(kitchen):
     seq, loc = kitchen  # loc.map: this file's Open3D fusion
     mine = seq.fused(MAP_FRAMES, stride=STRIDE, voxel_size=0.02)
