@@ -166,6 +166,16 @@ def main_axis(points: np.ndarray) -> np.ndarray:
     return np.array([axis[0], axis[1], 0.0])
 
 
+def moved_along(T: np.ndarray, direction: np.ndarray, distances: Sequence[float]) -> list[np.ndarray]:
+    """T (4x4) with its translation moved by each of `distances` along the unit `direction` (its frame's)."""
+    moved = []
+    for d in distances:
+        S = T.copy()
+        S[:3, 3] += d * direction
+        moved.append(S)
+    return moved
+
+
 def spanning(result: RegistrationResult, offset: np.ndarray, weight: float, text: str) -> RegistrationResult:
     """`result` with `text` among its unconstrained motions and its covariance widened along a translation
     `offset` (map frame): `weight` offset offset^T added to the translation block (a mixture of two poses `offset`
@@ -602,11 +612,8 @@ class MapLocalizer:
         T = result.transformation
         u = T[:3, :3] @ main_axis(sample)
         shift = FLAT_SHIFT_SPACINGS * self.voxel_size
-        moved = []
-        for sign in (1.0, -1.0):
-            S = T.copy()
-            S[:3, 3] += sign * shift * u
-            moved.append(float(overlap_shares(sample, index, S, np.array([TIGHT_SPACINGS * self.voxel_size]))[0]))
+        moved = [float(overlap_shares(sample, index, S, np.array([TIGHT_SPACINGS * self.voxel_size]))[0])
+                 for S in moved_along(T, u, (shift, -shift))]
         if max(moved) < ratio * tight:
             return result
         text = f"{motion('translation along', u)}: {AS_WELL_FITTED} {shift:.2f} m along it"
@@ -697,12 +704,7 @@ class MapLocalizer:
         direction = T[:3, :3] @ main_axis(sample)
         step = 2.0 * self.config.screen_voxels * self.voxel_size
         shifts = np.arange(step, self.config.slide_reach + 1e-9, step)
-        moved = []
-        for d in (*shifts, *-shifts):
-            S = T.copy()
-            S[:3, 3] += d * direction
-            moved.append(S)
-        return moved
+        return moved_along(T, direction, (*shifts, *-shifts))
 
     def chosen(self, results: Sequence[RegistrationResult]) -> RegistrationResult:
         """The most confident of several results for one scan, its confidence bounded by the most confident
