@@ -221,10 +221,11 @@ class Pipeline(ABC):
 
     def _answer(self, pair: CloudPair, prepared: Prepared, result: RegistrationResult, verdict: Verdict,
                 start: Start, generation: int, times: tuple[float, float], light: bool = False,
-                registered_decoded: bool = False) -> Publication:
+                registered_decoded: bool = False, continues: bool | None = None) -> Publication:
         """A registered pair's publication: its status and, if the verdict publishes it, its outputs (the result
         is then kept for tracking); a rejected result is counted as failed. `times`: choosing the start and
-        registering, s."""
+        registering, s; `continues`: the result continues the tracked motion (`Tracker.record`; None: it started
+        from the last result)."""
         c, ctx = self._ctx.config(), self._ctx
         header = pair_header(pair)
         latency = time.monotonic() - max(pair.source.received, pair.target.received)
@@ -236,7 +237,7 @@ class Pipeline(ABC):
             ctx.report.warn("low_confidence", f"published a low-confidence result: confidence {result.confidence:.2f} "
                             f"< warn_confidence {c.warn_confidence} (fitness {result.fitness:.2f})")
         ctx.tracker.record(result.transformation, pair.source_stamp, generation, time.monotonic(),
-                           continues=start.origin in TRACKED)
+                           continues=start.origin in TRACKED if continues is None else continues)
         return Publication(status, Outputs(header, prepared.source, pair.source.frame, result, latency,
                                            prepared.decode_s, figures(prepared, result, *times),
                                            verdict.low_confidence, registered_decoded))
@@ -352,13 +353,14 @@ class MapPipeline(Pipeline):
             self._outcome(c, step, hit=False)
             raise NotRegistered("failed", failure_reason(exc), f"localisation failed: {exc}") from None
         t2 = time.perf_counter()
-        # no pose known (global, lost): a pose not within tracking's reach of the last one is a relocalisation
-        relocalized = before.mode == GLOBAL and (start.T is None or not localizer.within_reach(result.transformation,
-                                                                                             start.T))
-        verdict = judge(result, c, relocalized=relocalized)
+        # a pose beyond tracking's reach of its start was found elsewhere (the place index): while no pose is known
+        # (global, lost) a relocalisation; in any state no motion for the next scan's prediction to go on with
+        jumped = start.T is not None and not localizer.within_reach(result.transformation, start.T)
+        verdict = judge(result, c, relocalized=before.mode == GLOBAL and (start.T is None or jumped))
         verdict = replace(verdict, localization=self._outcome(c, step, hit=verdict.publish))  # a miss: not published
         # the registered points are the scan voxelised to the map's resolution, not the decoded ones
-        return self._answer(pair, prepared, result, verdict, start, generation, (t1 - t0, t2 - t1))
+        return self._answer(pair, prepared, result, verdict, start, generation, (t1 - t0, t2 - t1),
+                            continues=start.origin in TRACKED and not jumped)
 
     def _map_localizer(self, registrar: Registering, c: NodeConfig, map_points: np.ndarray,
                        frame: str) -> MapLocalizer:

@@ -145,7 +145,7 @@ def parse(argv: list[str] | None = None) -> argparse.Namespace:
     return a
 
 
-ARGS = parse()
+ARGS = parse() if __name__ == "__main__" else parse([])  # imported (a test, bench_lidar_node): the defaults
 os.environ["OMP_NUM_THREADS"] = str(ARGS.threads)  # before Open3D and torch load
 os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")  # spinning OpenMP workers starve on a shared 2-core machine
 
@@ -804,14 +804,13 @@ def follow(loc: MapLocalizer, poses: np.ndarray, scans: list[np.ndarray], sectio
                                                        parameter=False, stamp=stamp if predict else None),
                                  keep=config.map.localization.retrieve > 0)
         rec, result = localise(loc, scan, T, section, kind, i, start.T, diagnose=False)
-        relocalized = before.mode == GLOBAL and (start.T is None or not loc.within_reach(result.transformation,
-                                                                                          start.T))
-        publish = judge(result, config, relocalized=relocalized).publish
+        jumped = start.T is not None and not loc.within_reach(result.transformation, start.T)
+        publish = judge(result, config, relocalized=before.mode == GLOBAL and (start.T is None or jumped)).publish
         rec.update(state=state.update(step, publish), published=publish)
         recs.append(rec)
         if publish:
             tracker.record(result.transformation, stamp, tracker.generation, float(i),
-                           continues=start.origin in TRACKED)
+                           continues=start.origin in TRACKED and not jumped)
     return recs
 
 

@@ -93,8 +93,8 @@ def test_seated_tells_the_true_place_from_one_the_scan_does_not_fit(monkeypatch)
     tracking confidence) seats a scan at its true pose and not at the same pose 30 m along the map's long side
     (a 1x1-block world with the shipped LiDAR profile; the truth from the world's own poses)."""
     monkeypatch.syspath_prepend(str(REPO / "scripts"))
-    monkeypatch.setattr(sys, "argv", ["bench_lidar_map.py"])  # the script reads its arguments on import
-    monkeypatch.setenv("OMP_WAIT_POLICY", os.environ.get("OMP_WAIT_POLICY", "PASSIVE"))  # ... and sets these:
+    # imported, the script takes its default arguments, and sets these:
+    monkeypatch.setenv("OMP_WAIT_POLICY", os.environ.get("OMP_WAIT_POLICY", "PASSIVE"))
     monkeypatch.setenv("OMP_NUM_THREADS", os.environ.get("OMP_NUM_THREADS", "2"))  # restored after the test
     import bench_lidar_map as bench
 

@@ -5,10 +5,10 @@ streets; the northern street lined by identical terraced houses repeating every 
 survey scans every 3 m along its roads and corridors (the world's own map cache under cache/lidar_world),
 written to a PLY file and given as `target_file`; the node runs with config/genreg_lidar_map.yaml as shipped
 (plus a short diagnostics period). Scans are VLP-32-like revolutions with moving cars and people, published
-in the sensor frame at 10 Hz by a best-effort publisher (SensorDataQoS) as a driver sends them: x, y, z,
-intensity, ring (uint16) and time (float32) packed in 22 bytes (a time field at an unaligned offset), misses
-as NaN points, `is_dense` false. The map frame is the world frame, so a scan's true pose in the map is the
-pose it was cast from (`sensor_pose`), known to this test only.
+in the sensor frame at 10 Hz by a best-effort publisher (SensorDataQoS) as a driver sends them
+(`LidarScan.records`): x, y, z, intensity, ring (uint16) and time (float32) packed in 22 bytes (a time field
+at an unaligned offset), misses as NaN points, `is_dense` false. The map frame is the world frame, so a
+scan's true pose in the map is the pose it was cast from (`sensor_pose`), known to this test only.
 
 The stream (`run`): the vehicle stands at its start on the southern street until the node has placed it
 (the first scan without a guess) and tracks it; drives east 1 m per scan; is kidnapped to the western
@@ -45,6 +45,7 @@ from genreg_core.data.lidar_world import (
     sensor_pose,
     world_scan,
 )
+from genreg_core.data.synthetic_lidar import DRIVER_POINT
 from genreg_ros.config import CONFIG_DIR
 from genreg_ros.conversions import msg_to_matrix
 from genreg_ros.pointcloud2 import array_to_msg, read_points
@@ -59,18 +60,12 @@ HEIGHT = 1.8  # m: the sensor above the road, as the survey's
 LANE = 0.8  # m: the vehicle's offset from the street's centre-line
 PARAMS = {"diagnostics.period": 0.2}  # config/genreg_lidar_map.yaml otherwise
 STATUS_DEPTH = 1000  # the test's registration_status history
-XYZIRT = np.dtype({  # a Velodyne driver's point: x, y, z, intensity, ring, time, packed (point_step 22)
-    "names": ["x", "y", "z", "intensity", "ring", "time"],
-    "formats": ["<f4", "<f4", "<f4", "<f4", "<u2", "<f4"],
-    "offsets": [0, 4, 8, 12, 16, 18],
-    "itemsize": 22,
-})
 SLIDE = re.compile(r"translation along \((-?[\d.]+), (-?[\d.]+), (-?[\d.]+)\) to a rival pose ([\d.]+) m away")
 
 
 @dataclass(frozen=True)
 class Scan:
-    """One revolution: its records (XYZIRT, sensor frame) and its true pose T_map_sensor."""
+    """One revolution: its records (DRIVER_POINT, sensor frame) and its true pose T_map_sensor."""
 
     records: np.ndarray
     truth: np.ndarray
@@ -105,15 +100,8 @@ class Run:
 
 def driver_records(world: World, pose: np.ndarray, seed: int) -> np.ndarray:
     """A scan as a driver publishes it: every ray of the revolution (misses as NaN), ring and firing time."""
-    scan = world_scan(world, pose, np.random.default_rng(seed), dataclasses.replace(SURVEY_SENSOR, keep_misses=True))
-    records = np.zeros(len(scan), XYZIRT)
-    points = scan.points.copy()
-    points[~points.any(axis=1)] = np.nan  # a miss: (0, 0, 0) from the sensor model, NaN from the driver
-    records["x"], records["y"], records["z"] = points.T
-    records["intensity"], records["ring"] = scan.intensity, scan.ring
-    assert scan.time is not None
-    records["time"] = scan.time
-    return records
+    return world_scan(world, pose, np.random.default_rng(seed),
+                      dataclasses.replace(SURVEY_SENSOR, keep_misses=True)).records()
 
 
 def street_poses(world: World) -> dict[str, Callable[[float], np.ndarray]]:
@@ -304,18 +292,18 @@ def test_no_published_pose_is_wrong(run):
 def test_aligned_clouds_keep_the_drivers_fields(run):
     """A published scan's aligned cloud: its finite points (the misses, NaN, dropped) moved by the published
     pose, in the map frame, with intensity, ring and time carried unchanged in the driver's 22-byte layout."""
-    layout = [(name, XYZIRT.fields[name][1]) for name in XYZIRT.names]
+    layout = [(name, DRIVER_POINT.fields[name][1]) for name in DRIVER_POINT.names]
     checked = 0
     for sent in run.sent:
         msg = run.aligned.get(sent.key)
         if msg is None:
             continue
-        assert msg.header.frame_id == MAP_FRAME_ID and msg.point_step == XYZIRT.itemsize
+        assert msg.header.frame_id == MAP_FRAME_ID and msg.point_step == DRIVER_POINT.itemsize
         assert [(f.name, f.offset) for f in msg.fields] == layout
         kept = sent.scan.records[np.isfinite(sent.scan.records["x"])]
         out = read_points(msg)
         assert out.num_input == len(kept) < len(sent.scan.records) and out.mask is None
-        records = out.records.view(XYZIRT).reshape(-1)
+        records = out.records.view(DRIVER_POINT).reshape(-1)
         for name in ("intensity", "ring", "time"):
             np.testing.assert_array_equal(records[name], kept[name])
         xyz = np.c_[kept["x"], kept["y"], kept["z"]].astype(np.float64)
@@ -348,7 +336,8 @@ def test_the_drive_is_tracked(run):
 def test_a_kidnapped_vehicle_is_placed_again(run):
     """The kidnapped vehicle's scans taken before it is placed again publish nothing (no wrong pose: checked
     above); it is placed within map.lost_after (2) + 2 scans taken (after two misses tracking is lost and
-    the scan is localised without a guess) and tracked on."""
+    the scan is localised without a guess) and tracked on, the first scan after it from the placed pose
+    itself (the jump is not a velocity to predict with)."""
     kidnap = answered(run, "kidnap")
     states = [(v["localization"], v["initial_guess"], v["published"]) for _, v in kidnap]
     placed = next((n for n, (_, v) in enumerate(kidnap) if v["published"] == "true"), None)
@@ -358,10 +347,13 @@ def test_a_kidnapped_vehicle_is_placed_again(run):
     if placed >= 2:  # lost: localised without a guess
         assert status["localization"] == "global" and status["initial_guess"] == "none", states
         assert int(run.diagnostics["tracking_lost"]) >= 1, run.diagnostics
-    for sent, status in kidnap[placed + 1:] + answered(run, "drive_on"):
+    after = kidnap[placed + 1:] + answered(run, "drive_on")
+    for sent, status in after:
         assert status["localization"] == "tracking" and status["published"] == "true", status
         assert right(run, sent), (sent.phase, pose_error(run, sent), status)
     assert answered(run, "drive_on"), "no scan of the drive after the kidnap taken"
+    # the jump to the placed pose is no motion to go on with: the next scan starts from that pose as it is
+    assert after[0][1]["initial_guess"] == "last_result", [v["initial_guess"] for _, v in after]
 
 
 def test_published_covariances_are_valid(run):

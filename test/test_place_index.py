@@ -28,6 +28,7 @@ from genreg_core.place_index import (
     spectra,
 )
 from genreg_core.preprocess import voxel_downsample
+from genreg_core.score import TargetIndex
 
 SENSOR = LidarSensor.uniform(16, (-25.0, 15.0), 720, max_range=60.0)
 PLACED_RE_DEG, PLACED_TE_M = 2.0, 0.25  # a LiDAR scan is placed within these
@@ -194,6 +195,41 @@ def test_tracking_finds_the_sensor_pose_and_the_voxelised_map_is_cached(
         result = again.localize(lidar_scan(scene, T, rng, SENSOR).points, initial_guess=T @ off)
         re, te = transform_errors(result.transformation, T)
         assert re < 0.5 and te < 0.05 and result.confidence >= 0.5, (re, te, result.confidence)
+
+
+def test_a_guess_that_puts_the_scan_off_the_map_is_not_tracked_and_the_index_places_it(
+        street: tuple[Scene, np.ndarray]) -> None:
+    """A guess hundreds of metres off the map (as a pose moved on at the speed of a kidnap): `track` does not
+    align from it (None: GICP would run off the map, whose k-d tree is slow to search far from it), and the
+    scan is still placed from it, by the place index; a guess 2 m and 5 deg off (a stale pose) is tracked."""
+    scene, map_xyz = street
+    loc = MapLocalizer(map_xyz, config=LocalizationConfig(retrieve=8, map_voxel=0.2))
+    rng = np.random.default_rng(11)
+    T = sensor_pose(12.0, 0.6, 1.8, 0.3)
+    scan = lidar_scan(scene, T, rng, SENSOR).points.astype(np.float64)
+    voxelised = voxel_downsample(scan, loc.voxel_size)
+    for wild in (sensor_pose(400.0, 0.0, 1.8), sensor_pose(12.0, 0.6, -150.0, 0.3)):
+        assert loc.track(voxelised, wild, local=loc.whole_map()) is None
+        result = loc.localize(scan, initial_guess=wild)
+        re, te = transform_errors(result.transformation, T)
+        assert re < PLACED_RE_DEG and te < PLACED_TE_M and result.confidence >= 0.5, (re, te, result.confidence)
+    stale = loc.track(voxelised, T @ sensor_pose(2.0, 0.0, 0.0, np.radians(5.0)), local=loc.whole_map())
+    assert stale is not None
+
+
+@given(st.integers(0, 2**32 - 1), st.floats(0.05, 3.0))
+def test_near_share_is_the_share_of_queries_in_a_cell_holding_target_points(seed: int, cell: float) -> None:
+    """`TargetIndex.near_share` against a set of the target's floored cells, for queries near, inside and far
+    outside the target (beyond its grid on every side)."""
+    rng = np.random.default_rng(seed)
+    target = rng.normal(0.0, 5.0, (rng.integers(1, 400), 3))
+    query = np.concatenate([target[rng.integers(0, len(target), 50)] + rng.normal(0.0, cell, (50, 3)),
+                            rng.uniform(-1e4, 1e4, (20, 3)), rng.normal(0.0, 8.0, (30, 3))])
+    cells = {tuple(c) for c in np.floor(target / cell).astype(np.int64)}
+    truth = np.mean([tuple(c) in cells for c in np.floor(query / cell).astype(np.int64)])
+    index = TargetIndex(target)
+    assert index.near_share(query, cell) == pytest.approx(truth)
+    assert index.near_share(target, cell) == 1.0 and index.near_share(query[:0], cell) == 0.0
 
 
 def test_a_street_that_repeats_is_never_confident_and_the_slide_along_it_is_named() -> None:

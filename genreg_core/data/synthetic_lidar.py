@@ -38,6 +38,12 @@ from genreg_core.geometry import make_transform
 
 SCENES = ("room", "street")
 _CHUNK = 4_000_000  # rays x primitives intersected at once (bounds the temporary arrays)
+DRIVER_POINT = np.dtype({  # a Velodyne driver's point: x, y, z, intensity, ring, time, packed (22 bytes)
+    "names": ["x", "y", "z", "intensity", "ring", "time"],
+    "formats": ["<f4", "<f4", "<f4", "<f4", "<u2", "<f4"],
+    "offsets": [0, 4, 8, 12, 16, 18],
+    "itemsize": 22,
+})
 
 
 @dataclass(frozen=True)
@@ -266,6 +272,19 @@ class LidarScan:
 
     def __len__(self) -> int:
         return len(self.points)
+
+    def records(self) -> np.ndarray:
+        """The revolution as a driver publishes it: (N,) `DRIVER_POINT` records, an emitted miss (0, 0, 0)
+        as NaN, time 0 when unknown (`genreg_ros.pointcloud2.array_to_msg` makes a PointCloud2 of them,
+        `is_dense` False when misses are kept)."""
+        records = np.zeros(len(self), DRIVER_POINT)
+        points = self.points.copy()
+        points[~points.any(axis=1)] = np.nan
+        records["x"], records["y"], records["z"] = points.T
+        records["intensity"], records["ring"] = self.intensity, self.ring
+        if self.time is not None:
+            records["time"] = self.time
+        return records
 
 
 def lidar_scan(scene: Scene, pose_world_sensor: np.ndarray, rng: np.random.Generator,

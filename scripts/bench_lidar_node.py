@@ -1,0 +1,278 @@
+#!/usr/bin/env python3
+"""register_node in a large LiDAR map, fed at 10 Hz: map mode through DDS, scan by scan, against the true poses.
+
+    python scripts/bench_lidar_node.py [--seed 7] [--drive-scans 200] [--walk-scans 150] [--json PATH]
+
+The node runs in its own process (as with `ros2 run`) with config/genreg_lidar_map.yaml as shipped (and
+`diagnostics.period` 1 s). Its map is `bench_lidar_map.py`'s campus of that seed (held out: 7 and up; 4 x 3
+blocks, about 9 M points fused from survey scans every 3 m at 0.1 m voxels, cached under cache/lidar_world),
+written once as a binary PCD `target_file` under --work, where the node also keeps its prepared map
+(`<file>.genreg-cache/`: the first run builds it, later runs load it). This process publishes scans in the
+sensor frame as a driver does (`LidarScan.records`: x y z intensity ring time, misses as NaN), best effort
+with depth 5 (SensorDataQoS), stamped 100 ms apart and sent at that pace, in four phases:
+  start    standing on the longest street (bench_lidar_map's drive start; five revolutions sent in turn) until
+           the node has placed the vehicle without a guess and tracked it twice (at most --stand-timeout s)
+  drive    along that street at 10 m/s (1 m a scan), --drive-scans HDL-64-like revolutions (~100k points)
+  kidnap   the robot carried to the start of the building's main corridor (a floor robot, 0.6 m high,
+           VLP-32-like), standing there until placed again and tracked twice
+  walk     along the corridor at 1.5 m/s (0.15 m a scan), --walk-scans of them
+Every scan is cast (6 moving cars and people around it) and serialised before the node starts.
+
+Accounting, per phase: a scan sent is answered (one registration_status for it, superseded ones included) or
+lost (none came: dropped before the node took it, which its diagnostics count as not received); of the
+answered, published or not (and why: the status's `reason`); a published pose is wrong when it is 2 deg or
+0.25 m or more off its truth. Figures: TE median and largest of the published poses, the share within 0.1 m,
+the node's own latency (registration_status `latency_ms`: the scan's arrival in the node to its result)
+median and p95, and the scans until the first publication after the kidnap. For the run: the time from
+starting the node to its first diagnostics (map loaded and prepared), its CPU per scan and its resident
+memory (RSS, MB) when ready and at the end.
+
+ROS isolation: genreg_ros.environment.ros_environment (ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST, the shipped
+Fast DDS profile, a random ROS_DOMAIN_ID unless one is set).
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import os
+import sys
+import time
+from collections import Counter
+from dataclasses import dataclass
+from pathlib import Path
+
+from genreg_ros.replay.harness import Client, NodeProcess, ReplayOptions, restamp, ros_env
+
+ros_env()  # before the first DDS participant of this process
+
+import numpy as np
+import open3d as o3d
+from rclpy.serialization import serialize_message
+from std_msgs.msg import Header
+from tqdm import tqdm
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from bench_lidar_map import (
+    HELD_OUT_SEED,
+    SCAN_SENSOR,
+    TRACK_SENSOR,
+    code_state,
+    drive_poses,
+    load_text,
+    placed,
+    rng_of,
+    walk_poses,
+)
+from bench_node import cpu_seconds, rss_mb
+
+from genreg_core.data import lidar_world as lw
+from genreg_core.metrics import transform_errors
+from genreg_ros.config import CONFIG_DIR
+from genreg_ros.pointcloud2 import array_to_msg
+
+PERIOD_NS = 100_000_000  # a 10 Hz LiDAR
+SENSOR_FRAME, MAP_FRAME = "velodyne", "map"
+PHASES = ("start", "drive", "kidnap", "walk")
+STANDING = ("start", "kidnap")  # phases that stand until placed and tracked twice
+STAND_SCANS = 5  # revolutions cast at a standing place (movers differ), sent in turn: the node, which takes the
+# newest scan when it is free, does not take the same one every time
+NODE_PARAMS = {"diagnostics.period": "1.0"}  # config/genreg_lidar_map.yaml otherwise
+
+
+@dataclass
+class Sent:
+    """A scan as published: its stamp (ns), phase, true pose T_map_sensor and when it went out (monotonic)."""
+
+    stamp: int
+    phase: str
+    truth: np.ndarray
+    at: float
+
+
+def parse(argv: list[str] | None = None) -> argparse.Namespace:
+    p = argparse.ArgumentParser(description=(__doc__ or "").splitlines()[0],
+                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--seed", type=int, default=HELD_OUT_SEED, help="the campus world's seed (held out: 7 and up)")
+    p.add_argument("--drive-scans", type=int, default=200, help="scans of the drive, 1 m apart")
+    p.add_argument("--walk-scans", type=int, default=150, help="scans of the corridor walk, 0.15 m apart")
+    p.add_argument("--stand-timeout", type=float, default=30.0, help="longest stand at the start and the kidnap, s")
+    p.add_argument("--startup-timeout", type=float, default=600.0, help="longest wait for the node's map, s")
+    p.add_argument("--work", default="runs/bench_lidar_node", help="where the map file and the node's log go")
+    p.add_argument("--cache-dir", default="cache/lidar_world", help="where world maps are kept")
+    p.add_argument("--json", default=None, help="also write the figures here")
+    return p.parse_args(argv)
+
+
+def map_file(world: lw.World, cache_dir: str, work: Path) -> Path:
+    """The world's map as a binary PCD under `work` (written once)."""
+    path = work / f"{world.key}.pcd"
+    if not path.exists():
+        points = lw.cached_map(world, cache_dir=cache_dir)
+        cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points.astype(np.float64)))
+        work.mkdir(parents=True, exist_ok=True)
+        if not o3d.io.write_point_cloud(str(path), cloud):
+            raise SystemExit(f"could not write {path}")
+    return path
+
+
+def serialised(world: lw.World, poses: np.ndarray, rng: np.random.Generator, sensor, desc: str) -> list[bytes]:
+    """Each pose's revolution (misses kept, as NaN) as a serialised PointCloud2 in the sensor frame."""
+    out = []
+    sensor = dataclasses.replace(sensor, keep_misses=True)
+    for T in tqdm(poses, desc=f"casting {desc}", unit="scan", leave=False):
+        header = Header(frame_id=SENSOR_FRAME)
+        out.append(serialize_message(array_to_msg(header, lw.world_scan(world, T, rng, sensor).records(),
+                                                  is_dense=False)))
+    return out
+
+
+class Stream:
+    """Scans published at 10 Hz, stamped 100 ms apart; the node's answers read back by stamp."""
+
+    def __init__(self, client: Client) -> None:
+        self.client, self.sent = client, list[Sent]()
+        self.stamp = time.time_ns() // PERIOD_NS * PERIOD_NS
+        self.next_at = time.monotonic()
+
+    def publish(self, raw: bytes, truth: np.ndarray, phase: str) -> None:
+        time.sleep(max(0.0, self.next_at - time.monotonic()))
+        self.next_at = max(self.next_at + PERIOD_NS / 1e9, time.monotonic())
+        self.client.pub_source.publish(restamp(raw, self.stamp))
+        self.sent.append(Sent(self.stamp, phase, truth, time.monotonic()))
+        self.stamp += PERIOD_NS
+
+    def tracked(self, phase: str) -> int:
+        """The phase's scans published in state tracking so far."""
+        with self.client.lock:
+            status = dict(self.client.status)
+        return sum(status.get(s.stamp, {}).get("published") == "true" and
+                   status[s.stamp].get("localization") == "tracking" for s in self.sent if s.phase == phase)
+
+    def stand(self, raws: list[bytes], truths: np.ndarray, phase: str, timeout: float) -> None:
+        """Publish the phase's scans in turn until two are published in state tracking, or `timeout` s."""
+        deadline, k = time.monotonic() + timeout, 0
+        while self.tracked(phase) < 2 and time.monotonic() < deadline:
+            self.publish(raws[k % len(raws)], truths[k % len(truths)], phase)
+            k += 1
+
+    def drive(self, raws: list[bytes], truths: np.ndarray, phase: str) -> None:
+        for raw, T in zip(raws, truths, strict=True):
+            self.publish(raw, T, phase)
+
+    def settle(self, timeout: float = 30.0) -> None:
+        """Wait until every scan sent is answered, or `timeout` s after the last answer."""
+        last, count = time.monotonic(), -1
+        while time.monotonic() - last < timeout:
+            with self.client.lock:
+                answered = sum(s.stamp in self.client.status for s in self.sent)
+            if answered == len(self.sent):
+                return
+            if answered != count:
+                last, count = time.monotonic(), answered
+            time.sleep(0.1)
+
+
+def phase_figures(stream: Stream, phase: str) -> dict[str, object]:
+    """The accounting and figures of one phase's scans (see the module's docstring)."""
+    client = stream.client
+    with client.lock:
+        status, transforms = dict(client.status), dict(client.transforms)
+    sent = [s for s in stream.sent if s.phase == phase]
+    answered = [s for s in sent if s.stamp in status]
+    published = [s for s in answered if status[s.stamp].get("published") == "true" and s.stamp in transforms]
+    errors = [transform_errors(transforms[s.stamp].T, s.truth) for s in published]
+    te = np.array([e[1] for e in errors])
+    latency = np.array([float(status[s.stamp]["latency_ms"]) for s in answered if "latency_ms" in status[s.stamp]])
+    first = next((k for k, s in enumerate(sent) if s in published), None)
+    return {
+        "sent": len(sent), "answered": len(answered), "lost": len(sent) - len(answered),
+        "published": len(published), "wrong": sum(not placed(*e) for e in errors),
+        "reasons": dict(Counter(status[s.stamp].get("reason", "") for s in answered
+                                if status[s.stamp].get("published") != "true")),
+        "states": dict(Counter(status[s.stamp].get("localization", "-") for s in answered)),
+        "te_median_m": float(np.median(te)) if len(te) else float("nan"),
+        "te_max_m": float(te.max()) if len(te) else float("nan"),
+        "within_0.1_m": f"{int((te < 0.1).sum())}/{len(te)}",
+        "latency_ms_p50": float(np.median(latency)) if len(latency) else float("nan"),
+        "latency_ms_p95": float(np.percentile(latency, 95)) if len(latency) else float("nan"),
+        "first_published": first,
+    }
+
+
+def wait_ready(client: Client, node: NodeProcess, timeout: float) -> float:
+    """Seconds until the node's first diagnostics and a matched scan publisher (its map prepared)."""
+    t0 = time.monotonic()
+    while not (client.latest_diagnostics() and client.pub_source.get_subscription_count() > 0
+               and client.sub_tf.get_publisher_count() > 0):
+        if not node.alive():
+            raise SystemExit(f"the node exited: {node.error_line()}")
+        if time.monotonic() - t0 > timeout:
+            raise SystemExit(f"the node was not ready within {timeout:.0f} s: {node.error_line()}")
+        time.sleep(0.2)
+    return time.monotonic() - t0
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = parse(argv)
+    work = Path(args.work)
+    world = lw.campus_world(args.seed, (4, 3))
+    path = map_file(world, args.cache_dir, work)
+    drive = drive_poses(world, args.drive_scans)
+    walk = walk_poses(world, args.walk_scans)
+    poses = {"start": drive[:1].repeat(STAND_SCANS, 0), "drive": drive[1:], "kidnap": walk[:1].repeat(STAND_SCANS, 0),
+             "walk": walk[1:]}
+    sensors = {"start": TRACK_SENSOR, "drive": TRACK_SENSOR, "kidnap": SCAN_SENSOR, "walk": SCAN_SENSOR}
+    raws = {phase: serialised(world, poses[phase], rng_of("walk-indoor" if sensors[phase] is SCAN_SENSOR else "track",
+                                                          args.seed, 100 + k), sensors[phase], phase)
+            for k, phase in enumerate(PHASES)}
+    print(f"# register_node in a LiDAR map at 10 Hz ({world.key}, {path.stat().st_size / 1e6:.0f} MB map file)")
+    print(f"code: {code_state()}; 2 cores, OMP_NUM_THREADS {os.environ.get('OMP_NUM_THREADS', '-')}; "
+          f"load average at start {load_text()}; ROS_DOMAIN_ID {os.environ['ROS_DOMAIN_ID']}")
+    options = ReplayOptions(params_file=CONFIG_DIR / "genreg_lidar_map.yaml",
+                            node_params={**NODE_PARAMS, "target_file": str(path.resolve()), "target_frame": MAP_FRAME})
+    node = NodeProcess(options, work / "node.log")
+    client = Client("", input_reliability="best_effort", input_depth=5, aligned=False, status=True)
+    try:
+        ready_s = wait_ready(client, node, args.startup_timeout)
+        time.sleep(1.0)  # discovery settles
+        rss_ready, cpu0 = rss_mb(node.proc.pid), cpu_seconds(node.proc.pid)
+        stream = Stream(client)
+        t0 = time.monotonic()
+        for phase in PHASES:
+            if phase in STANDING:
+                stream.stand(raws[phase], poses[phase], phase, args.stand_timeout)
+            else:
+                stream.drive(raws[phase], poses[phase], phase)
+        stream.settle()
+        wall = time.monotonic() - t0
+        cpu = cpu_seconds(node.proc.pid) - cpu0
+        rss_end = rss_mb(node.proc.pid)
+        figures = {phase: phase_figures(stream, phase) for phase in PHASES}
+    finally:
+        client.close()
+        code = node.stop()
+    sent = sum(f["sent"] for f in figures.values())
+    print(f"node ready (map read, prepared) {ready_s:.1f} s after start; {sent} scans in {wall:.1f} s; node CPU "
+          f"{1e3 * cpu / max(sent, 1):.0f} ms a scan ({cpu / wall:.2f} cores); RSS {rss_ready:.0f} MB ready, "
+          f"{rss_end:.0f} MB at the end; load average at end {load_text()}; node exit code {code}")
+    print()
+    print("| phase | sent | answered | lost | published | wrong | not published: reasons | states | TE median / max m | "
+          "TE < 0.1 m | latency p50 / p95 ms | first published |")
+    print("|---|---|---|---|---|---|---|---|---|---|---|---|")
+    for phase, f in figures.items():
+        reasons = ", ".join(f"{k} {v}" for k, v in sorted(f["reasons"].items())) or "-"
+        states = ", ".join(f"{k} {v}" for k, v in sorted(f["states"].items()))
+        print(f"| {phase} | {f['sent']} | {f['answered']} | {f['lost']} | {f['published']} | {f['wrong']} | {reasons} | "
+              f"{states} | {f['te_median_m']:.3f} / {f['te_max_m']:.3f} | {f['within_0.1_m']} | "
+              f"{f['latency_ms_p50']:.0f} / {f['latency_ms_p95']:.0f} | {f['first_published']} |")
+    if args.json:
+        Path(args.json).write_text(json.dumps({"world": world.key, "ready_s": ready_s, "wall_s": wall, "cpu_s": cpu,
+                                               "rss_ready_mb": rss_ready, "rss_end_mb": rss_end, "phases": figures},
+                                              indent=1))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
