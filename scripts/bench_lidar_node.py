@@ -97,6 +97,7 @@ def parse(argv: list[str] | None = None) -> argparse.Namespace:
     p.add_argument("--seed", type=int, default=HELD_OUT_SEED, help="the campus world's seed (held out: 7 and up)")
     p.add_argument("--drive-scans", type=int, default=200, help="scans of the drive, 1 m apart")
     p.add_argument("--walk-scans", type=int, default=150, help="scans of the corridor walk, 0.15 m apart")
+    p.add_argument("--laps", type=int, default=1, help="the four phases this many times (a soak: is RSS flat?)")
     p.add_argument("--stand-timeout", type=float, default=30.0, help="longest stand at the start and the kidnap, s")
     p.add_argument("--startup-timeout", type=float, default=600.0, help="longest wait for the node's map, s")
     p.add_argument("--work", default="runs/bench_lidar_node", help="where the map file and the node's log go")
@@ -143,17 +144,17 @@ class Stream:
         self.sent.append(Sent(self.stamp, phase, truth, time.monotonic()))
         self.stamp += PERIOD_NS
 
-    def tracked(self, phase: str) -> int:
-        """The phase's scans published in state tracking so far."""
+    def tracked(self, since: int) -> int:
+        """The scans sent from the `since`-th on published in state tracking so far."""
         with self.client.lock:
             status = dict(self.client.status)
         return sum(status.get(s.stamp, {}).get("published") == "true" and
-                   status[s.stamp].get("localization") == "tracking" for s in self.sent if s.phase == phase)
+                   status[s.stamp].get("localization") == "tracking" for s in self.sent[since:])
 
     def stand(self, raws: list[bytes], truths: np.ndarray, phase: str, timeout: float) -> None:
         """Publish the phase's scans in turn until two are published in state tracking, or `timeout` s."""
-        deadline, k = time.monotonic() + timeout, 0
-        while self.tracked(phase) < 2 and time.monotonic() < deadline:
+        deadline, k, since = time.monotonic() + timeout, 0, len(self.sent)
+        while self.tracked(since) < 2 and time.monotonic() < deadline:
             self.publish(raws[k % len(raws)], truths[k % len(truths)], phase)
             k += 1
 
@@ -239,12 +240,14 @@ def main(argv: list[str] | None = None) -> int:
         time.sleep(1.0)  # discovery settles
         rss_ready, cpu0 = rss_mb(node.proc.pid), cpu_seconds(node.proc.pid)
         stream = Stream(client)
-        t0 = time.monotonic()
-        for phase in PHASES:
-            if phase in STANDING:
-                stream.stand(raws[phase], poses[phase], phase, args.stand_timeout)
-            else:
-                stream.drive(raws[phase], poses[phase], phase)
+        t0, rss_laps = time.monotonic(), []
+        for _ in range(args.laps):
+            for phase in PHASES:
+                if phase in STANDING:
+                    stream.stand(raws[phase], poses[phase], phase, args.stand_timeout)
+                else:
+                    stream.drive(raws[phase], poses[phase], phase)
+            rss_laps.append(rss_mb(node.proc.pid))
         stream.settle()
         wall = time.monotonic() - t0
         cpu = cpu_seconds(node.proc.pid) - cpu0
@@ -254,9 +257,10 @@ def main(argv: list[str] | None = None) -> int:
         client.close()
         code = node.stop()
     sent = sum(f["sent"] for f in figures.values())
-    print(f"node ready (map read, prepared) {ready_s:.1f} s after start; {sent} scans in {wall:.1f} s; node CPU "
-          f"{1e3 * cpu / max(sent, 1):.0f} ms a scan ({cpu / wall:.2f} cores); RSS {rss_ready:.0f} MB ready, "
-          f"{rss_end:.0f} MB at the end; load average at end {load_text()}; node exit code {code}")
+    print(f"node ready (map read, prepared) {ready_s:.1f} s after start; {sent} scans in {wall:.1f} s ({args.laps} "
+          f"lap(s)); node CPU {1e3 * cpu / max(sent, 1):.0f} ms a scan ({cpu / wall:.2f} cores); RSS {rss_ready:.0f} MB "
+          f"ready, after each lap {', '.join(f'{r:.0f}' for r in rss_laps)} MB, {rss_end:.0f} MB at the end; load "
+          f"average at end {load_text()}; node exit code {code}")
     print()
     print("| phase | sent | answered | lost | published | wrong | not published: reasons | states | TE median / max m | "
           "TE < 0.1 m | latency p50 / p95 ms | first published |")
@@ -269,7 +273,8 @@ def main(argv: list[str] | None = None) -> int:
               f"{f['latency_ms_p50']:.0f} / {f['latency_ms_p95']:.0f} | {f['first_published']} |")
     if args.json:
         Path(args.json).write_text(json.dumps({"world": world.key, "ready_s": ready_s, "wall_s": wall, "cpu_s": cpu,
-                                               "rss_ready_mb": rss_ready, "rss_end_mb": rss_end, "phases": figures},
+                                               "rss_ready_mb": rss_ready, "rss_laps_mb": rss_laps,
+                                               "rss_end_mb": rss_end, "phases": figures},
                                               indent=1))
     return 0
 
