@@ -25,6 +25,7 @@ from genreg_core.geometry import apply_transform
 FITNESS_SPACINGS = 3.0  # fitness counts a source point as overlapping within this many target spacings
 TIGHT_SPACINGS = 1.0  # tight fitness: within this many (the guard's comparison, a third of the overlap score)
 NORMAL_NEIGHBOURS = 20  # target normals (covariance, point-to-plane ICP) from this many nearest neighbours
+DENSE_CELLS = 1 << 25  # TargetIndex.occupied: a grid of at most this many cells is a flag per cell (32 MB)
 REMEMBERED_QUERIES = 3  # TargetIndex.nearest answers the same points again from memory (last this many)
 # pose_covariance's model error, calibrated on redkitchen training pairs by scripts/calibrate_covariance.py
 # (MODEL_CARD.md): the Gauss-Newton covariance times COVARIANCE_INFLATION (residuals of neighbouring points
@@ -93,14 +94,22 @@ class TargetIndex:
 
     def occupied(self, cell: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """The cells of a grid of edge `cell` that hold target points, found once per `cell` and kept: the
-        grid's lowest cell (3,), its size in cells (3,) and the sorted keys (`_keys`) of the occupied ones."""
+        grid's lowest cell (3,), its size in cells (3,) and its occupancy: a flag per cell by key (`_keys`)
+        when the grid has at most `DENSE_CELLS` cells, else the sorted keys of the occupied ones."""
         if cell not in self._cells:
             cells = np.floor(self.points / cell).astype(np.int64)
             low = cells.min(axis=0)
             size = cells.max(axis=0) - low + 1
-            if float(np.prod(size.astype(np.float64))) >= 2.0 ** 62:
+            total = float(np.prod(size.astype(np.float64)))
+            if total >= 2.0 ** 62:
                 raise ValueError(f"cells of {cell} m are too small for a target {size.tolist()} cells wide")
-            self._cells[cell] = (low, size, sorted_distinct(self._keys(cells - low, size)))
+            keys = self._keys(cells - low, size)
+            if total <= DENSE_CELLS:
+                occupancy = np.zeros(int(total), dtype=bool)
+                occupancy[keys] = True
+            else:
+                occupancy = sorted_distinct(keys)
+            self._cells[cell] = (low, size, occupancy)
         return self._cells[cell]
 
     def near_share(self, query: np.ndarray, cell: float) -> float:
@@ -108,12 +117,15 @@ class TargetIndex:
         (`occupied`; each within `cell` x sqrt(3) of one): found by hashing, as fast far from the target as
         near it, where the k-d tree's nearest-neighbour search is not (points tens of metres from a map of
         millions visit much of its tree: seconds for a scan's 1,500)."""
-        low, size, keys = self.occupied(cell)
-        if len(query) == 0 or len(keys) == 0:
+        low, size, occupancy = self.occupied(cell)
+        if len(query) == 0:
             return 0.0
         cells = np.floor(np.asarray(query, dtype=np.float64) / cell).astype(np.int64) - low
         wanted = self._keys(cells[((cells >= 0) & (cells < size)).all(axis=1)], size)
-        found = keys[np.minimum(np.searchsorted(keys, wanted), len(keys) - 1)] == wanted
+        if occupancy.dtype == bool:
+            found = occupancy[wanted]
+        else:
+            found = occupancy[np.minimum(np.searchsorted(occupancy, wanted), len(occupancy) - 1)] == wanted
         return float(np.count_nonzero(found)) / len(query)
 
     @staticmethod

@@ -47,7 +47,7 @@ from genreg_ros.policy import Verdict, judge
 from genreg_ros.publication import Outputs, Publication, Statuses, pair_header
 from genreg_ros.registrar import Registering
 from genreg_ros.sync import PairSync
-from genreg_ros.tracking import TRACKED, Start, Tracker
+from genreg_ros.tracking import Start, Tracker, motion_continues
 
 if TYPE_CHECKING:
     from collections.abc import Callable
@@ -221,11 +221,10 @@ class Pipeline(ABC):
 
     def _answer(self, pair: CloudPair, prepared: Prepared, result: RegistrationResult, verdict: Verdict,
                 start: Start, generation: int, times: tuple[float, float], light: bool = False,
-                registered_decoded: bool = False, continues: bool | None = None) -> Publication:
+                registered_decoded: bool = False, jumped: bool = False) -> Publication:
         """A registered pair's publication: its status and, if the verdict publishes it, its outputs (the result
         is then kept for tracking); a rejected result is counted as failed. `times`: choosing the start and
-        registering, s; `continues`: the result continues the tracked motion (`Tracker.record`; None: it started
-        from the last result)."""
+        registering, s; `jumped`: the result lies beyond tracking's reach of its start (`motion_continues`)."""
         c, ctx = self._ctx.config(), self._ctx
         header = pair_header(pair)
         latency = time.monotonic() - max(pair.source.received, pair.target.received)
@@ -237,7 +236,7 @@ class Pipeline(ABC):
             ctx.report.warn("low_confidence", f"published a low-confidence result: confidence {result.confidence:.2f} "
                             f"< warn_confidence {c.warn_confidence} (fitness {result.fitness:.2f})")
         ctx.tracker.record(result.transformation, pair.source_stamp, generation, time.monotonic(),
-                           continues=start.origin in TRACKED if continues is None else continues)
+                           continues=motion_continues(start.origin, jumped))
         return Publication(status, Outputs(header, prepared.source, pair.source.frame, result, latency,
                                            prepared.decode_s, figures(prepared, result, *times),
                                            verdict.low_confidence, registered_decoded))
@@ -354,13 +353,14 @@ class MapPipeline(Pipeline):
             raise NotRegistered("failed", failure_reason(exc), f"localisation failed: {exc}") from None
         t2 = time.perf_counter()
         # a pose beyond tracking's reach of its start was found elsewhere (the place index): while no pose is known
-        # (global, lost) a relocalisation; in any state no motion for the next scan's prediction to go on with
+        # (global, lost) a relocalisation; from a predicted start, the motion broke off (a kidnap): the next scan's
+        # prediction does not go on with it (`motion_continues`)
         jumped = start.T is not None and not localizer.within_reach(result.transformation, start.T)
         verdict = judge(result, c, relocalized=before.mode == GLOBAL and (start.T is None or jumped))
         verdict = replace(verdict, localization=self._outcome(c, step, hit=verdict.publish))  # a miss: not published
         # the registered points are the scan voxelised to the map's resolution, not the decoded ones
         return self._answer(pair, prepared, result, verdict, start, generation, (t1 - t0, t2 - t1),
-                            continues=start.origin in TRACKED and not jumped)
+                            jumped=jumped)
 
     def _map_localizer(self, registrar: Registering, c: NodeConfig, map_points: np.ndarray,
                        frame: str) -> MapLocalizer:

@@ -55,6 +55,14 @@ class Start:
     note: str = ""
 
 
+def motion_continues(origin: str, jumped: bool) -> bool:
+    """Whether a result continues the tracked motion (`Tracker.record`'s `continues`): it started from the last
+    result as kept (`last_result`: whatever it moved by is the motion), or from the last result moved on
+    (`predicted`) and stayed within reach of that start (`jumped` False); a prediction the result left (a
+    vehicle carried away, an abrupt stop) is no velocity to go on with."""
+    return origin == "last_result" or (origin == "predicted" and not jumped)
+
+
 class Tracker:
     """The topic guess, the last result and the reset generation of one node."""
 

@@ -164,7 +164,7 @@ from genreg_core.result import RegistrationResult
 from genreg_ros.config import NodeConfig, profile_config
 from genreg_ros.map_state import GLOBAL, LOST, Localization, scan_start
 from genreg_ros.policy import judge
-from genreg_ros.tracking import TRACKED, Tracker
+from genreg_ros.tracking import Tracker, motion_continues
 
 GATE = 0.5  # accepted: confidence at least this
 MAX_RE_DEG = 2.0  # placed: rotation error below this, deg
@@ -810,7 +810,7 @@ def follow(loc: MapLocalizer, poses: np.ndarray, scans: list[np.ndarray], sectio
         recs.append(rec)
         if publish:
             tracker.record(result.transformation, stamp, tracker.generation, float(i),
-                           continues=start.origin in TRACKED and not jumped)
+                           continues=motion_continues(start.origin, jumped))
     return recs
 
 

@@ -12,6 +12,7 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
+from genreg_core import score
 from genreg_core.config import LocalizationConfig
 from genreg_core.data.synthetic_lidar import LidarSensor, Scene, lidar_scan, sensor_pose, street_scene
 from genreg_core.geometry import apply_transform
@@ -220,16 +221,21 @@ def test_a_guess_that_puts_the_scan_off_the_map_is_not_tracked_and_the_index_pla
 @given(st.integers(0, 2**32 - 1), st.floats(0.05, 3.0))
 def test_near_share_is_the_share_of_queries_in_a_cell_holding_target_points(seed: int, cell: float) -> None:
     """`TargetIndex.near_share` against a set of the target's floored cells, for queries near, inside and far
-    outside the target (beyond its grid on every side)."""
+    outside the target (beyond its grid on every side), with the grid's occupancy held either way."""
     rng = np.random.default_rng(seed)
     target = rng.normal(0.0, 5.0, (rng.integers(1, 400), 3))
     query = np.concatenate([target[rng.integers(0, len(target), 50)] + rng.normal(0.0, cell, (50, 3)),
                             rng.uniform(-1e4, 1e4, (20, 3)), rng.normal(0.0, 8.0, (30, 3))])
     cells = {tuple(c) for c in np.floor(target / cell).astype(np.int64)}
     truth = np.mean([tuple(c) in cells for c in np.floor(query / cell).astype(np.int64)])
-    index = TargetIndex(target)
-    assert index.near_share(query, cell) == pytest.approx(truth)
-    assert index.near_share(target, cell) == 1.0 and index.near_share(query[:0], cell) == 0.0
+    dense = score.DENSE_CELLS
+    try:
+        for score.DENSE_CELLS in (dense, 0):  # a flag per cell of the grid (unless too many), sorted keys
+            index = TargetIndex(target)
+            assert index.near_share(query, cell) == pytest.approx(truth)
+            assert index.near_share(target, cell) == 1.0 and index.near_share(query[:0], cell) == 0.0
+    finally:
+        score.DENSE_CELLS = dense
 
 
 def test_a_street_that_repeats_is_never_confident_and_the_slide_along_it_is_named() -> None:

@@ -16,7 +16,7 @@ from genreg_ros import map_state
 from genreg_ros.config import MapParams, NodeConfig
 from genreg_ros.map_state import GLOBAL, LOST, Localization, scan_start
 from genreg_ros.policy import judge
-from genreg_ros.tracking import MAX_EXTRAPOLATION, Start, Tracker
+from genreg_ros.tracking import MAX_EXTRAPOLATION, Start, Tracker, motion_continues
 
 
 def shift(x: float) -> np.ndarray:
@@ -89,7 +89,8 @@ def test_tracking_uses_the_last_result_unless_a_newer_guess_arrived():
 def test_tracking_moves_the_last_result_on_at_the_velocity_of_the_last_two():
     """Map mode passes the scan's stamp: the last pose goes on at the last two poses' velocity, scaled by the
     stamps (1 m per 100 ms here), capped at MAX_EXTRAPOLATION intervals; a pose that did not start from the
-    last result (found without a guess, or from a topic guess) starts the motion afresh."""
+    last result (found without a guess, or from a topic guess), or left its prediction, starts the motion
+    afresh."""
     t = Tracker()
     g = t.generation
     ms = 1_000_000  # ns
@@ -109,12 +110,20 @@ def test_tracking_moves_the_last_result_on_at_the_velocity_of_the_last_two():
     assert s.origin == "last_result" and s.T[0, 3] == 2.0
     assert t.record(shift(2.0), source_stamp=200 * ms, generation=g, now=2.6)  # the same stamp again
     assert t.predicted(300 * ms)[0, 3] == pytest.approx(3.0)  # ... keeps the velocity
-    assert t.record(shift(40.0), source_stamp=300 * ms, generation=g, now=3.0, continues=False)  # a kidnap
+    # a kidnap: the pose found from the prediction lies beyond tracking's reach of it
+    assert t.record(shift(40.0), source_stamp=300 * ms, generation=g, now=3.0,
+                    continues=motion_continues("predicted", jumped=True))
     assert t.predicted(400 * ms) is None  # the jump is no velocity
     assert t.start(TRACKING, "lidar", "map", now=3.5, stamp=400 * ms).T[0, 3] == 40.0
     t.reset()
     assert t.predicted(400 * ms) is None
     assert t.start(TRACKING, "lidar", "map", now=4.0, stamp=500 * ms).origin == "parameter"  # nothing tracked
+    # what a result continues: from the last pose as kept, however far it moved (a fast vehicle's second scan,
+    # beyond reach of the pose before: its motion is the velocity); from a prediction, only within reach of it;
+    # nothing found without a guess or from a topic guess
+    assert motion_continues("last_result", jumped=True) and motion_continues("predicted", jumped=False)
+    assert not motion_continues("predicted", jumped=True)
+    assert not any(motion_continues(origin, jumped=False) for origin in ("none", "initialpose", "initial_guess"))
 
 
 def test_in_state_global_a_tracked_start_is_dropped_and_a_topic_guess_kept():
