@@ -572,8 +572,9 @@ class MapLocalizer:
         scan's (centroid, radius) from `scan_geometry`, if known (used only to find the local map). Its confidence is the calibration's tracking
         model's (`tracking_confidence`; without one, uncalibrated as `genreg_core.result` says). None when the
         map holds too few points around the guess, or when the guess puts less than `MIN_NEAR_SHARE` of the
-        scan's sampled points near the map (a stale or wild guess: GICP from it would run off the map). `local`: the map to align against (default: `local`'s);
-        `iterations`: GICP's (default `track_iterations`)."""
+        scan's sampled points near the map (a stale or wild guess: GICP from it would run off the map).
+        `local`: the map to align against (default: `local`'s); `iterations`: GICP's (default
+        `track_iterations`)."""
         t0 = time.perf_counter()
         if local is None:
             centroid, radius = geometry or self.scan_geometry(scan)[:2]
