@@ -12,7 +12,8 @@ sensor frame as a driver does (`LidarScan.records`: x y z intensity ring time, m
 with depth 5 (SensorDataQoS), stamped 100 ms apart and sent at that pace, in four phases:
   start    standing on the longest street (bench_lidar_map's drive start; five revolutions sent in turn) until
            the node has placed the vehicle without a guess and tracked it twice (at most --stand-timeout s)
-  drive    along that street at 10 m/s (1 m a scan), --drive-scans HDL-64-like revolutions (~100k points)
+  drive    along that street at 10 m/s (1 m a scan; --drive-step 2: 20 m/s), --drive-scans HDL-64-like
+           revolutions (~100k points)
   kidnap   the robot carried to the start of the building's main corridor (a floor robot, 0.6 m high,
            VLP-32-like), standing there until placed again and tracked twice
   walk     along the corridor at 1.5 m/s (0.15 m a scan), --walk-scans of them
@@ -95,7 +96,8 @@ def parse(argv: list[str] | None = None) -> argparse.Namespace:
     p = argparse.ArgumentParser(description=(__doc__ or "").splitlines()[0],
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--seed", type=int, default=HELD_OUT_SEED, help="the campus world's seed (held out: 7 and up)")
-    p.add_argument("--drive-scans", type=int, default=200, help="scans of the drive, 1 m apart")
+    p.add_argument("--drive-scans", type=int, default=200, help="scans of the drive")
+    p.add_argument("--drive-step", type=int, default=1, help="m between the drive's scans (1: 10 m/s, 2: 20 m/s)")
     p.add_argument("--walk-scans", type=int, default=150, help="scans of the corridor walk, 0.15 m apart")
     p.add_argument("--laps", type=int, default=1, help="the four phases this many times (a soak: is RSS flat?)")
     p.add_argument("--stand-timeout", type=float, default=30.0, help="longest stand at the start and the kidnap, s")
@@ -220,7 +222,7 @@ def main(argv: list[str] | None = None) -> int:
     work = Path(args.work)
     world = lw.campus_world(args.seed, (4, 3))
     path = map_file(world, args.cache_dir, work)
-    drive = drive_poses(world, args.drive_scans)
+    drive = drive_poses(world, args.drive_scans * args.drive_step)[::args.drive_step]
     walk = walk_poses(world, args.walk_scans)
     poses = {"start": drive[:1].repeat(STAND_SCANS, 0), "drive": drive[1:], "kidnap": walk[:1].repeat(STAND_SCANS, 0),
              "walk": walk[1:]}
