@@ -32,6 +32,7 @@ class Verdict:
     low_confidence: bool  # published, below warn_confidence
     unconstrained: tuple[str, ...]  # the directions the geometry leaves free (degenerate when any)
     localization: str = ""  # map mode: the scan's state (global, tracking, lost; genreg_ros.map_state), else ""
+    jumped: bool = False  # map mode: the pose was not tracked from its start (none, or beyond tracking's reach)
 
     @property
     def degenerate(self) -> bool:

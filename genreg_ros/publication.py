@@ -100,6 +100,7 @@ class Statuses:
             values["reason"] = f"failed.{verdict.reason}"
         if verdict.localization:
             values["localization"] = verdict.localization
+            values["jumped"] = str(verdict.jumped).lower()
         return self._array(header, verdict.level, verdict.message, values)
 
     def unanswered(self, pair: CloudPair, level: Level, counter: str, reason: str, text: str) -> DiagnosticArray:

@@ -318,7 +318,7 @@ def test_first_scan_is_placed_without_a_guess(run):
     assert status["localization"] == "global" and status["initial_guess"] == "none", status
     assert status["published"] == "true" and right(run, first), (pose_error(run, first), status)
     assert float(status["confidence"]) >= 0.5 and status["target_frame"] == MAP_FRAME_ID
-    assert status["source_frame"] == LIDAR
+    assert status["source_frame"] == LIDAR and status["jumped"] == "true"  # not tracked from a start
 
 
 def test_the_drive_is_tracked(run):
@@ -330,6 +330,7 @@ def test_the_drive_is_tracked(run):
     for sent, status in later:
         assert status["localization"] == "tracking" and status["initial_guess"] in TRACKED, status
         assert status["published"] == "true" and right(run, sent), (sent.phase, pose_error(run, sent), status)
+        assert status["jumped"] == "false", status
     assert [v["initial_guess"] for _, v in later][1:] == ["predicted"] * (len(later) - 1), later
 
 
@@ -337,19 +338,23 @@ def test_a_kidnapped_vehicle_is_placed_again(run):
     """The kidnapped vehicle's scans taken before it is placed again publish nothing (no wrong pose: checked
     above); it is placed within map.lost_after (2) + 2 scans taken (after two misses tracking is lost and
     the scan is localised without a guess) and tracked on, the first scan after it from the placed pose
-    itself (the jump is not a velocity to predict with)."""
+    itself (the jump is not a velocity to predict with). The placement says `jumped: true` and is counted among
+    the diagnostics' `jumps`; the tracked scans say `jumped: false`."""
     kidnap = answered(run, "kidnap")
     states = [(v["localization"], v["initial_guess"], v["published"]) for _, v in kidnap]
     placed = next((n for n, (_, v) in enumerate(kidnap) if v["published"] == "true"), None)
     assert placed is not None and placed <= 2 + 2, f"not placed within lost_after + 2 scans taken: {states}"
     sent, status = kidnap[placed]
     assert right(run, sent), (pose_error(run, sent), status)
+    # a jump: found by the place index, not tracked from its start; counted with the first placement's
+    assert status["jumped"] == "true" and int(run.diagnostics["jumps"]) >= 2, (status, run.diagnostics)
     if placed >= 2:  # lost: localised without a guess
         assert status["localization"] == "global" and status["initial_guess"] == "none", states
         assert int(run.diagnostics["tracking_lost"]) >= 1, run.diagnostics
     after = kidnap[placed + 1:] + answered(run, "drive_on")
     for sent, status in after:
         assert status["localization"] == "tracking" and status["published"] == "true", status
+        assert status["jumped"] == "false", status
         assert right(run, sent), (sent.phase, pose_error(run, sent), status)
     assert answered(run, "drive_on"), "no scan of the drive after the kidnap taken"
     # the jump to the placed pose is no motion to go on with: the next scan starts from that pose as it is
