@@ -48,7 +48,7 @@ class Stats:
         self.lost: Counter[str] = Counter()  # topic -> messages the middleware reported lost
         self.dropped: Counter[str] = Counter()
         self.failed: Counter[str] = Counter()
-        self.events: Counter[str] = Counter()  # time_jump, reset, light; map mode: relocalize, tracking_lost, jumps
+        self.events: Counter[str] = Counter()  # time_jump, reset, light; map mode: relocalize, tracking_lost, pose_jumps
         self.registered = 0
         self.low_confidence = 0  # registered and published, but below warn_confidence
         self.paired = 0  # pairs formed by the sync; each is registered, failed, dropped or superseded
@@ -181,7 +181,7 @@ def build_status(s: Snapshot, now: float, name: str, hardware_id: str, stale_tim
         "time_jump": s.events["time_jump"],
         "reset": s.events["reset"],
         **({"localization": localization, "relocalize": s.events["relocalize"],
-            "tracking_lost": s.events["tracking_lost"], "jumps": s.events["jumps"]} if localization else {}),
+            "tracking_lost": s.events["tracking_lost"], "pose_jumps": s.events["pose_jumps"]} if localization else {}),
         "latency_ms.last": 1e3 * s.latency[-1] if s.latency else float("nan"),
         "latency_ms.median": _median_ms(s.latency),
         "latency_ms.p95": 1e3 * float(np.percentile(s.latency, 95)) if s.latency else float("nan"),

@@ -357,11 +357,11 @@ class MapPipeline(Pipeline):
         # prediction does not go on with it (`motion_continues`)
         jumped = start.T is not None and not localizer.within_reach(result.transformation, start.T)
         verdict = judge(result, c, relocalized=before.mode == GLOBAL and (start.T is None or jumped))
-        # a miss: not published; a published pose not tracked from its start is a jump (`jumped`, `jumps`)
+        # a miss: not published; a published pose not tracked from its start is a jump (`jumped`, `pose_jumps`)
         verdict = replace(verdict, localization=self._outcome(c, step, hit=verdict.publish),
                           jumped=start.T is None or jumped)
         if verdict.publish and verdict.jumped:
-            self._ctx.report.stats.event("jumps")
+            self._ctx.report.stats.event("pose_jumps")
         # the registered points are the scan voxelised to the map's resolution, not the decoded ones
         return self._answer(pair, prepared, result, verdict, start, generation, (t1 - t0, t2 - t1),
                             jumped=jumped)

@@ -339,7 +339,7 @@ def test_a_kidnapped_vehicle_is_placed_again(run):
     above); it is placed within map.lost_after (2) + 2 scans taken (after two misses tracking is lost and
     the scan is localised without a guess) and tracked on, the first scan after it from the placed pose
     itself (the jump is not a velocity to predict with). The placement says `jumped: true` and is counted among
-    the diagnostics' `jumps`; the tracked scans say `jumped: false`."""
+    the diagnostics' `pose_jumps`; the tracked scans say `jumped: false`."""
     kidnap = answered(run, "kidnap")
     states = [(v["localization"], v["initial_guess"], v["published"]) for _, v in kidnap]
     placed = next((n for n, (_, v) in enumerate(kidnap) if v["published"] == "true"), None)
@@ -347,7 +347,7 @@ def test_a_kidnapped_vehicle_is_placed_again(run):
     sent, status = kidnap[placed]
     assert right(run, sent), (pose_error(run, sent), status)
     # a jump: found by the place index, not tracked from its start; counted with the first placement's
-    assert status["jumped"] == "true" and int(run.diagnostics["jumps"]) >= 2, (status, run.diagnostics)
+    assert status["jumped"] == "true" and int(run.diagnostics["pose_jumps"]) >= 2, (status, run.diagnostics)
     if placed >= 2:  # lost: localised without a guess
         assert status["localization"] == "global" and status["initial_guess"] == "none", states
         assert int(run.diagnostics["tracking_lost"]) >= 1, run.diagnostics
