@@ -22,7 +22,7 @@ Every scan is cast (6 moving cars and people around it) and serialised before th
 Accounting, per phase: a scan sent is answered (one registration_status for it, superseded ones included) or
 lost (none came: dropped before the node took it, which its diagnostics count as not received); of the
 answered, published or not (and why: the status's `reason`); a published pose is wrong when it is 2 deg or
-0.25 m or more off its truth. Figures: TE median and largest of the published poses, the share within 0.1 m,
+0.25 m or more off its truth, and jumped when its status says it was not tracked from its start. Figures: TE median and largest of the published poses, the share within 0.1 m,
 the node's own latency (registration_status `latency_ms`: the scan's arrival in the node to its result)
 median and p95, and the scans until the first publication after the kidnap. For the run: the time from
 starting the node to its first diagnostics (map loaded and prepared), its CPU per scan and its resident
@@ -192,6 +192,7 @@ def phase_figures(stream: Stream, phase: str) -> dict[str, object]:
     return {
         "sent": len(sent), "answered": len(answered), "lost": len(sent) - len(answered),
         "published": len(published), "wrong": sum(not placed(*e) for e in errors),
+        "jumped": sum(status[s.stamp].get("jumped") == "true" for s in published),
         "reasons": dict(Counter(status[s.stamp].get("reason", "") for s in answered
                                 if status[s.stamp].get("published") != "true")),
         "states": dict(Counter(status[s.stamp].get("localization", "-") for s in answered)),
@@ -264,13 +265,14 @@ def main(argv: list[str] | None = None) -> int:
           f"ready, after each lap {', '.join(f'{r:.0f}' for r in rss_laps)} MB, {rss_end:.0f} MB at the end; load "
           f"average at end {load_text()}; node exit code {code}")
     print()
-    print("| phase | sent | answered | lost | published | wrong | not published: reasons | states | TE median / max m | "
-          "TE < 0.1 m | latency p50 / p95 ms | first published |")
-    print("|---|---|---|---|---|---|---|---|---|---|---|---|")
+    print("| phase | sent | answered | lost | published | wrong | jumped | not published: reasons | states | "
+          "TE median / max m | TE < 0.1 m | latency p50 / p95 ms | first published |")
+    print("|---|---|---|---|---|---|---|---|---|---|---|---|---|")
     for phase, f in figures.items():
         reasons = ", ".join(f"{k} {v}" for k, v in sorted(f["reasons"].items())) or "-"
         states = ", ".join(f"{k} {v}" for k, v in sorted(f["states"].items()))
-        print(f"| {phase} | {f['sent']} | {f['answered']} | {f['lost']} | {f['published']} | {f['wrong']} | {reasons} | "
+        print(f"| {phase} | {f['sent']} | {f['answered']} | {f['lost']} | {f['published']} | {f['wrong']} | {f['jumped']} | "
+              f"{reasons} | "
               f"{states} | {f['te_median_m']:.3f} / {f['te_max_m']:.3f} | {f['within_0.1_m']} | "
               f"{f['latency_ms_p50']:.0f} / {f['latency_ms_p95']:.0f} | {f['first_published']} |")
     if args.json:

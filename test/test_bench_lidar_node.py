@@ -46,14 +46,14 @@ def test_a_phase_counts_each_scan_once_by_its_answer_and_its_error_against_the_t
     truth = [make_transform(np.eye(3), [float(k), 2.0, 1.8]) for k in range(6)]
     off = [0.0, 0.3, None, None, 0.05, 0.0]  # the published pose's offset along y (None: nothing published)
     sent = [bench.Sent(1000 + k, "walk" if k < 5 else "drive", truth[k], 0.0) for k in range(6)]
-    status = {1000: {"published": "true", "latency_ms": "10"}, 1001: {"published": "true", "latency_ms": "30"},
+    status = {1000: {"published": "true", "latency_ms": "10", "jumped": "true"}, 1001: {"published": "true", "latency_ms": "30"},
               1002: {"published": "false", "reason": "dropped.superseded"},
               1004: {"published": "true", "latency_ms": "20"}, 1005: {"published": "true", "latency_ms": "99"}}
     transforms = {1000 + k: Output(0.0, "map", "velodyne", truth[k] @ make_transform(np.eye(3), [0.0, d, 0.0]))
                   for k, d in enumerate(off) if d is not None}
     client = SimpleNamespace(lock=threading.Lock(), status=status, transforms=transforms)
     f = bench.phase_figures(SimpleNamespace(client=client, sent=sent), "walk")
-    assert (f["sent"], f["answered"], f["lost"], f["published"], f["wrong"]) == (5, 4, 1, 3, 1)
+    assert (f["sent"], f["answered"], f["lost"], f["published"], f["wrong"], f["jumped"]) == (5, 4, 1, 3, 1, 1)
     assert f["reasons"] == {"dropped.superseded": 1} and f["within_0.1_m"] == "2/3" and f["first_published"] == 0
     assert f["te_median_m"] == pytest.approx(0.05) and f["te_max_m"] == pytest.approx(0.3)
     assert f["latency_ms_p50"] == pytest.approx(20.0)
