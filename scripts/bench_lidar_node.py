@@ -14,6 +14,8 @@ with depth 5 (SensorDataQoS), stamped 100 ms apart and sent at that pace, in fou
            the node has placed the vehicle without a guess and tracked it twice (at most --stand-timeout s)
   drive    along that street at 10 m/s (1 m a scan; --drive-step 2: 20 m/s), --drive-scans HDL-64-like
            revolutions (~100k points)
+  misclick (with --misclick) standing at the drive's end, an `initialpose` 500 m off the map is sent (an RViz
+           click in the wrong place) and the vehicle stands on until tracked twice after it
   kidnap   the robot carried to the start of the building's main corridor (a floor robot, 0.6 m high,
            VLP-32-like), standing there until placed again and tracked twice
   walk     along the corridor at 1.5 m/s (0.15 m a scan), --walk-scans of them
@@ -50,6 +52,7 @@ ros_env()  # before the first DDS participant of this process
 
 import numpy as np
 import open3d as o3d
+from geometry_msgs.msg import PoseWithCovarianceStamped
 from rclpy.serialization import serialize_message
 from std_msgs.msg import Header
 from tqdm import tqdm
@@ -71,12 +74,14 @@ from bench_node import cpu_seconds, rss_mb
 from genreg_core.data import lidar_world as lw
 from genreg_core.metrics import transform_errors
 from genreg_ros.config import CONFIG_DIR
+from genreg_ros.conversions import matrix_to_pose_msg
 from genreg_ros.pointcloud2 import array_to_msg
 
 PERIOD_NS = 100_000_000  # a 10 Hz LiDAR
 SENSOR_FRAME, MAP_FRAME = "velodyne", "map"
-PHASES = ("start", "drive", "kidnap", "walk")
-STANDING = ("start", "kidnap")  # phases that stand until placed and tracked twice
+PHASES = ("start", "drive", "misclick", "kidnap", "walk")
+STANDING = ("start", "misclick", "kidnap")  # phases that stand until placed and tracked twice
+MISCLICK_M = 500.0  # the misclick phase's initialpose: this far east of the vehicle, m
 STAND_SCANS = 5  # revolutions cast at a standing place (movers differ), sent in turn: the node, which takes the
 # newest scan when it is free, does not take the same one every time
 NODE_PARAMS = {"diagnostics.period": "1.0"}  # config/genreg_lidar_map.yaml otherwise
@@ -99,6 +104,7 @@ def parse(argv: list[str] | None = None) -> argparse.Namespace:
     p.add_argument("--drive-scans", type=int, default=200, help="scans of the drive")
     p.add_argument("--drive-step", type=int, default=1, help="m between the drive's scans (1: 10 m/s, 2: 20 m/s)")
     p.add_argument("--walk-scans", type=int, default=150, help="scans of the corridor walk, 0.15 m apart")
+    p.add_argument("--misclick", action="store_true", help="an initialpose 500 m off the map after the drive")
     p.add_argument("--laps", type=int, default=1, help="the four phases this many times (a soak: is RSS flat?)")
     p.add_argument("--stand-timeout", type=float, default=30.0, help="longest stand at the start and the kidnap, s")
     p.add_argument("--startup-timeout", type=float, default=600.0, help="longest wait for the node's map, s")
@@ -205,6 +211,13 @@ def phase_figures(stream: Stream, phase: str) -> dict[str, object]:
     }
 
 
+def misclick(truth: np.ndarray) -> PoseWithCovarianceStamped:
+    """An `initialpose` in the map frame `MISCLICK_M` east of the vehicle's true pose, as RViz sends one."""
+    T = truth.copy()
+    T[0, 3] += MISCLICK_M
+    return matrix_to_pose_msg(T, Header(frame_id=MAP_FRAME), None)
+
+
 def wait_ready(client: Client, node: NodeProcess, timeout: float) -> float:
     """Seconds until the node's first diagnostics and a matched scan publisher (its map prepared)."""
     t0 = time.monotonic()
@@ -225,12 +238,14 @@ def main(argv: list[str] | None = None) -> int:
     path = map_file(world, args.cache_dir, work)
     drive = drive_poses(world, args.drive_scans * args.drive_step)[::args.drive_step]
     walk = walk_poses(world, args.walk_scans)
-    poses = {"start": drive[:1].repeat(STAND_SCANS, 0), "drive": drive[1:], "kidnap": walk[:1].repeat(STAND_SCANS, 0),
-             "walk": walk[1:]}
-    sensors = {"start": TRACK_SENSOR, "drive": TRACK_SENSOR, "kidnap": SCAN_SENSOR, "walk": SCAN_SENSOR}
+    poses = {"start": drive[:1].repeat(STAND_SCANS, 0), "drive": drive[1:], "misclick": drive[-1:].repeat(STAND_SCANS, 0),
+             "kidnap": walk[:1].repeat(STAND_SCANS, 0), "walk": walk[1:]}
+    sensors = {"start": TRACK_SENSOR, "drive": TRACK_SENSOR, "misclick": TRACK_SENSOR, "kidnap": SCAN_SENSOR,
+               "walk": SCAN_SENSOR}
+    phases = [p for p in PHASES if p != "misclick" or args.misclick]
     raws = {phase: serialised(world, poses[phase], rng_of("walk-indoor" if sensors[phase] is SCAN_SENSOR else "track",
                                                           args.seed, 100 + k), sensors[phase], phase)
-            for k, phase in enumerate(PHASES)}
+            for k, phase in enumerate(PHASES) if phase in phases}
     print(f"# register_node in a LiDAR map at 10 Hz ({world.key}, {path.stat().st_size / 1e6:.0f} MB map file)")
     print(f"code: {code_state()}; 2 cores, OMP_NUM_THREADS {os.environ.get('OMP_NUM_THREADS', '-')}; "
           f"load average at start {load_text()}; ROS_DOMAIN_ID {os.environ['ROS_DOMAIN_ID']}")
@@ -238,6 +253,7 @@ def main(argv: list[str] | None = None) -> int:
                             node_params={**NODE_PARAMS, "target_file": str(path.resolve()), "target_frame": MAP_FRAME})
     node = NodeProcess(options, work / "node.log")
     client = Client("", input_reliability="best_effort", input_depth=5, aligned=False, status=True)
+    initialpose = client.node.create_publisher(PoseWithCovarianceStamped, "/initialpose", 1)
     try:
         ready_s = wait_ready(client, node, args.startup_timeout)
         time.sleep(1.0)  # discovery settles
@@ -245,7 +261,11 @@ def main(argv: list[str] | None = None) -> int:
         stream = Stream(client)
         t0, rss_laps = time.monotonic(), []
         for _ in range(args.laps):
-            for phase in PHASES:
+            for phase in phases:
+                if phase == "misclick":  # after the drive's last answer, so that a scan of this phase takes it
+                    stream.settle(5.0)
+                    initialpose.publish(misclick(poses[phase][0]))
+                    time.sleep(0.2)
                 if phase in STANDING:
                     stream.stand(raws[phase], poses[phase], phase, args.stand_timeout)
                 else:
@@ -255,7 +275,7 @@ def main(argv: list[str] | None = None) -> int:
         wall = time.monotonic() - t0
         cpu = cpu_seconds(node.proc.pid) - cpu0
         rss_end = rss_mb(node.proc.pid)
-        figures = {phase: phase_figures(stream, phase) for phase in PHASES}
+        figures = {phase: phase_figures(stream, phase) for phase in phases}
     finally:
         client.close()
         code = node.stop()
