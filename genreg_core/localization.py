@@ -103,6 +103,7 @@ from genreg_core.score import (
     FITNESS_SPACINGS,
     TIGHT_SPACINGS,
     TargetIndex,
+    grid_keys,
     motion,
     overlap_shares,
     see_through,
@@ -154,12 +155,10 @@ def occupied_cells(points: np.ndarray, spacing: float) -> np.ndarray:
 def cells_of(points: np.ndarray, spacing: float, rows: bool = True) -> tuple[np.ndarray, np.ndarray | None]:
     """`occupied_cells` and, with `rows`, each point's row among them."""
     cells = np.floor(points / spacing).astype(np.int64)
-    low = cells.min(axis=0)
-    size = cells.max(axis=0) - low + 1
-    if float(np.prod(size.astype(np.float64))) >= 2.0 ** 62:
+    low, size, keys = grid_keys(cells)
+    if keys is None:  # too large a grid for one int64 key per cell
         found = np.unique(cells, axis=0, return_inverse=rows)
         return (found[0], found[1].ravel()) if rows else (found, None)
-    keys = ((cells[:, 0] - low[0]) * size[1] + cells[:, 1] - low[1]) * size[2] + cells[:, 2] - low[2]
     keys, inverse = np.unique(keys, return_inverse=True) if rows else (np.unique(keys), None)
     return np.stack([keys // (size[1] * size[2]), keys // size[2] % size[1], keys % size[2]], axis=1) + low, inverse
 

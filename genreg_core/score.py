@@ -94,18 +94,15 @@ class TargetIndex:
 
     def occupied(self, cell: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """The cells of a grid of edge `cell` that hold target points, found once per `cell` and kept: the
-        grid's lowest cell (3,), its size in cells (3,) and its occupancy: a flag per cell by key (`_keys`)
+        grid's lowest cell (3,), its size in cells (3,) and its occupancy: a flag per cell by key (`grid_keys`)
         when the grid has at most `DENSE_CELLS` cells, else the sorted keys of the occupied ones."""
         if cell not in self._cells:
-            cells = np.floor(self.points / cell).astype(np.int64)
-            low = cells.min(axis=0)
-            size = cells.max(axis=0) - low + 1
-            total = float(np.prod(size.astype(np.float64)))
-            if total >= 2.0 ** 62:
+            low, size, keys = grid_keys(np.floor(self.points / cell).astype(np.int64))
+            if keys is None:
                 raise ValueError(f"cells of {cell} m are too small for a target {size.tolist()} cells wide")
-            keys = self._keys(cells - low, size)
+            total = int(np.prod(size))
             if total <= DENSE_CELLS:
-                occupancy = np.zeros(int(total), dtype=bool)
+                occupancy = np.zeros(total, dtype=bool)
                 occupancy[keys] = True
             else:
                 occupancy = sorted_distinct(keys)
@@ -121,17 +118,12 @@ class TargetIndex:
         if len(query) == 0:
             return 0.0
         cells = np.floor(np.asarray(query, dtype=np.float64) / cell).astype(np.int64) - low
-        wanted = self._keys(cells[((cells >= 0) & (cells < size)).all(axis=1)], size)
+        wanted = cell_key(cells[((cells >= 0) & (cells < size)).all(axis=1)], size)
         if occupancy.dtype == bool:
             found = occupancy[wanted]
         else:
             found = occupancy[np.minimum(np.searchsorted(occupancy, wanted), len(occupancy) - 1)] == wanted
         return float(np.count_nonzero(found)) / len(query)
-
-    @staticmethod
-    def _keys(cells: np.ndarray, size: np.ndarray) -> np.ndarray:
-        """One integer per cell of a grid of `size` cells (non-negative cell coordinates below `size`)."""
-        return (cells[:, 0] * size[1] + cells[:, 1]) * size[2] + cells[:, 2]
 
     @property
     def spacing(self) -> float:
@@ -159,6 +151,21 @@ class TargetIndex:
             self._normals[missing] = plane_normals(self.points, neighbours.astype(np.int64), self._mean)
             self._has_normal[missing] = True
         return self._normals[rows]
+
+
+def grid_keys(cells: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+    """Integer cells (N, 3, N >= 1) on the grid that bounds them: its lowest cell (3,), its size in cells (3,)
+    and one int64 key per cell (`cell_key`); keys None when the grid has 2^62 cells or more (no such key)."""
+    low = cells.min(axis=0)
+    size = cells.max(axis=0) - low + 1
+    if float(np.prod(size.astype(np.float64))) >= 2.0 ** 62:
+        return low, size, None
+    return low, size, cell_key(cells - low, size)
+
+
+def cell_key(offsets: np.ndarray, size: np.ndarray) -> np.ndarray:
+    """One integer per cell of a grid of `size` cells, from its (N, 3) offsets from the lowest cell, x-major."""
+    return (offsets[:, 0] * size[1] + offsets[:, 1]) * size[2] + offsets[:, 2]
 
 
 def sorted_distinct(values: np.ndarray) -> np.ndarray:
