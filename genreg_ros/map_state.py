@@ -92,6 +92,23 @@ class Localization:
             self._generation += 1
 
 
+@dataclass(frozen=True)
+class Placement:
+    """How a scan's pose stands to the start it was localised from (`placement`)."""
+
+    left: bool  # beyond tracking's reach of its start: found elsewhere, by a search (`motion_continues`)
+    relocalized: bool  # found while no pose was known, without a start or having left it (`policy.judge`)
+    jumped: bool  # not tracked from its start: it had none, or left it (registration_status `jumped`)
+
+
+def placement(before: Step, start: Start, reached: bool) -> Placement:
+    """The placement of a pose localised in the state `before` from `start`; `reached`: the pose lies within
+    tracking's reach of `start.T` (`MapLocalizer.within_reach`; not read without a start)."""
+    left = start.T is not None and not reached
+    jumped = start.T is None or left
+    return Placement(left, before.mode == GLOBAL and jumped, jumped)
+
+
 def scan_start(step: Step, start: Start, keep: bool = False) -> tuple[Step, Start]:
     """How a scan is localised: `start` is the tracker's (a topic guess, else the last accepted pose, else
     none). A topic guess is used in every state; the last pose in state tracking, and in state lost when

@@ -41,7 +41,7 @@ from genreg_ros.budget import LatencyBudget
 from genreg_ros.config import NodeConfig
 from genreg_ros.diagnostics import Reporter
 from genreg_ros.intake import CloudPair, FixedTarget, Target
-from genreg_ros.map_state import GLOBAL, LOST, TRACKING, Localization, Step, scan_start
+from genreg_ros.map_state import LOST, TRACKING, Localization, Step, placement, scan_start
 from genreg_ros.pointcloud2 import DecodedCloud, PointCloud2Error, read_points
 from genreg_ros.policy import Verdict, judge
 from genreg_ros.publication import Outputs, Publication, Statuses, pair_header
@@ -355,16 +355,15 @@ class MapPipeline(Pipeline):
         # a pose beyond tracking's reach of its start was found elsewhere (the place index): while no pose is known
         # (global, lost) a relocalisation; from a predicted start, the motion broke off (a kidnap): the next scan's
         # prediction does not go on with it (`motion_continues`)
-        jumped = start.T is not None and not localizer.within_reach(result.transformation, start.T)
-        verdict = judge(result, c, relocalized=before.mode == GLOBAL and (start.T is None or jumped))
+        moved = placement(before, start, start.T is None or localizer.within_reach(result.transformation, start.T))
+        verdict = judge(result, c, relocalized=moved.relocalized)
         # a miss: not published; a published pose not tracked from its start is a jump (`jumped`, `pose_jumps`)
-        verdict = replace(verdict, localization=self._outcome(c, step, hit=verdict.publish),
-                          jumped=start.T is None or jumped)
+        verdict = replace(verdict, localization=self._outcome(c, step, hit=verdict.publish), jumped=moved.jumped)
         if verdict.publish and verdict.jumped:
             self._ctx.report.stats.event("pose_jumps")
         # the registered points are the scan voxelised to the map's resolution, not the decoded ones
         return self._answer(pair, prepared, result, verdict, start, generation, (t1 - t0, t2 - t1),
-                            jumped=jumped)
+                            jumped=moved.left)
 
     def _map_localizer(self, registrar: Registering, c: NodeConfig, map_points: np.ndarray,
                        frame: str) -> MapLocalizer:

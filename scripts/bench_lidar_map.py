@@ -162,7 +162,7 @@ from genreg_core.preprocess import voxel_downsample
 from genreg_core.registration import Registrar
 from genreg_core.result import RegistrationResult
 from genreg_ros.config import NodeConfig, profile_config
-from genreg_ros.map_state import GLOBAL, LOST, Localization, scan_start
+from genreg_ros.map_state import LOST, Localization, placement, scan_start
 from genreg_ros.policy import judge
 from genreg_ros.tracking import Tracker, motion_continues
 
@@ -804,13 +804,13 @@ def follow(loc: MapLocalizer, poses: np.ndarray, scans: list[np.ndarray], sectio
                                                        parameter=False, stamp=stamp if predict else None),
                                  keep=config.map.localization.retrieve > 0)
         rec, result = localise(loc, scan, T, section, kind, i, start.T, diagnose=False)
-        jumped = start.T is not None and not loc.within_reach(result.transformation, start.T)
-        publish = judge(result, config, relocalized=before.mode == GLOBAL and (start.T is None or jumped)).publish
+        moved = placement(before, start, start.T is None or loc.within_reach(result.transformation, start.T))
+        publish = judge(result, config, relocalized=moved.relocalized).publish
         rec.update(state=state.update(step, publish), published=publish)
         recs.append(rec)
         if publish:
             tracker.record(result.transformation, stamp, tracker.generation, float(i),
-                           continues=motion_continues(start.origin, jumped))
+                           continues=motion_continues(start.origin, moved.left))
     return recs
 
 

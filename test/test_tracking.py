@@ -299,3 +299,14 @@ def test_map_settings_are_checked():
         MapParams(lost_after=0)
     with pytest.raises(ValueError, match="lost_after"):
         Localization(0)
+
+
+def test_placement_says_how_a_pose_stands_to_its_start():
+    """A pose with no start, or beyond tracking's reach of it, jumped; only while no pose was known (step
+    global) is that a relocalisation; a pose within reach of its start neither left it nor jumped."""
+    none, near = Start(None, "none"), Start(shift(1.0), "predicted")
+    for mode in (GLOBAL, map_state.TRACKING):
+        step = map_state.Step(mode, 0)
+        assert map_state.placement(step, none, reached=False) == map_state.Placement(False, mode == GLOBAL, True)
+        assert map_state.placement(step, near, reached=False) == map_state.Placement(True, mode == GLOBAL, True)
+        assert map_state.placement(step, near, reached=True) == map_state.Placement(False, False, False)
