@@ -6,14 +6,15 @@ counts a drop or failure there with its reason and warns about it (throttled per
 turns one snapshot of the counters into the status: level WARN when a cloud topic is stale, the last pair
 failed or its confidence was below warn_confidence; values as listed in docs/ros_node.md. `InputWatch` finds
 input topics that stay silent although a publisher is matched (large best-effort clouds lost between
-processes, a publisher that stopped) and says the likely cause once per silence.
+processes, a publisher that stopped) and says the likely cause once per silence. `Sequences` counts the clouds
+a publisher sent that never reached the node, from the gaps in its messages' sequence numbers.
 """
 
 from __future__ import annotations
 
 import threading
 import time
-from collections import Counter, deque
+from collections import Counter, OrderedDict, deque
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any, Protocol
@@ -26,6 +27,7 @@ from genreg_ros.sync import SOURCE, TARGET
 if TYPE_CHECKING:
     from rclpy.topic_endpoint_info import TopicEndpointInfo
 
+PUBLISHERS_KEPT = 64  # publishers per topic whose last sequence number is kept (the least recent forgotten)
 WARN_THROTTLE_S = 2.0  # one warning per drop/failure reason this often, s
 DOCS = "docs/ros_node.md"
 
@@ -38,6 +40,37 @@ class Logger(Protocol):
     def warning(self, message: str) -> object: ...
 
 
+class Sequences:
+    """The messages one topic's publishers sent that never reached the subscription: the gaps in each
+    publisher's publication sequence numbers (the rmw's message info, per publisher gid), whatever dropped
+    them: the subscription's queue (`qos.depth`) overflowing while the process took no messages, or the
+    transport. Counted from the first message received from each publisher (what it sent before is not the
+    node's) and only while the subscription lives (`clear` when it is made anew). A middleware that gives
+    no sequence numbers leaves the count at 0 (`counted` stays False)."""
+
+    def __init__(self) -> None:
+        self.last: OrderedDict[bytes, int] = OrderedDict()  # publisher gid -> its last sequence number received
+        self.counted = False
+
+    def missed(self, info: dict[str, Any] | None) -> int:
+        """How many messages of this message's publisher were skipped since its last received one (0 for
+        its first, an older or repeated one, or a message without a sequence number or gid)."""
+        number = None if info is None else info.get("publication_sequence_number")
+        gid = None if info is None else info.get("publisher_gid")
+        if number is None or not gid:
+            return 0
+        self.counted = True
+        key = bytes(gid["data"]) if isinstance(gid, dict) else bytes(gid)
+        last = self.last.pop(key, None)
+        self.last[key] = number if last is None else max(last, number)
+        if len(self.last) > PUBLISHERS_KEPT:
+            self.last.popitem(last=False)
+        return 0 if last is None else max(0, number - last - 1)
+
+    def clear(self) -> None:
+        self.last.clear()
+
+
 class Stats:
     """Thread-safe counters and recent figures behind /diagnostics."""
 
@@ -46,6 +79,8 @@ class Stats:
         self.start = time.monotonic()
         self.received: Counter[str] = Counter()
         self.lost: Counter[str] = Counter()  # topic -> messages the middleware reported lost
+        self.missed: Counter[str] = Counter()  # topic -> messages sent but never received (`Sequences`)
+        self.sequences = {SOURCE: Sequences(), TARGET: Sequences()}
         self.dropped: Counter[str] = Counter()
         self.failed: Counter[str] = Counter()
         self.events: Counter[str] = Counter()  # time_jump, reset, light; map mode: relocalize, tracking_lost, pose_jumps
@@ -59,10 +94,24 @@ class Stats:
         self.last: dict[str, float] = {}
         self.last_outcome = ""  # "", "registered", "registered with low confidence" or "failed: <reason>"
 
-    def arrived(self, topic: str, now: float) -> None:
+    def arrived(self, topic: str, now: float, info: dict[str, Any] | None = None) -> int:
+        """Count a cloud received on `topic` (`info`: its rmw message info) and return how many of its
+        publisher's clouds were missed before it (`Sequences.missed`, added to `missed`)."""
         with self.lock:
             self.received[topic] += 1
             self.last_arrival[topic] = now
+            missed = self.sequences[topic].missed(info)
+            self.missed[topic] += missed
+            return missed
+
+    def subscribed(self) -> None:
+        """The cloud subscriptions were made anew: staleness counts from now, sequence numbers from the
+        next message of each publisher."""
+        with self.lock:
+            self.start = time.monotonic()
+            self.last_arrival = {SOURCE: None, TARGET: None}
+            for sequences in self.sequences.values():
+                sequences.clear()
 
     def lost_messages(self, topic: str, count: int) -> None:
         with self.lock:
@@ -98,7 +147,7 @@ class Stats:
         with self.lock:
             return Snapshot(
                 Counter(self.received), Counter(self.dropped), Counter(self.failed), Counter(self.events),
-                Counter(self.lost), self.registered,
+                Counter(self.lost), Counter(self.missed), self.registered,
                 self.low_confidence, self.paired, dict(self.last_arrival), list(self.latency),
                 list(self.overhead), list(self.callback), dict(self.last), self.last_outcome, self.start)
 
@@ -112,6 +161,7 @@ class Snapshot:
     failed: Counter
     events: Counter
     lost: Counter
+    missed: Counter
     registered: int
     low_confidence: int
     paired: int
@@ -166,6 +216,8 @@ def build_status(s: Snapshot, now: float, name: str, hardware_id: str, stale_tim
     summary = f"registered {s.registered}, dropped {dropped}, failed {failed}"
     if lost := sum(s.lost.values()):
         summary += f", lost {lost} (by the middleware)"
+    if missed := sum(s.missed.values()):
+        summary += f", missed {missed} (sent, never received)"
     kv = {
         "state": state,
         "registered": s.registered,
@@ -176,6 +228,9 @@ def build_status(s: Snapshot, now: float, name: str, hardware_id: str, stale_tim
         "received.target": s.received[TARGET],
         "lost.source": s.lost[SOURCE],  # lost by the middleware (QoS event message_lost): never received
         "lost.target": s.lost[TARGET],
+        # sent but never received, by the publishers' sequence numbers (`Sequences`): includes those lost
+        "missed.source": s.missed[SOURCE],
+        "missed.target": s.missed[TARGET],
         "paired": s.paired,
         "light": s.events["light"],  # registered with the light settings under the latency budget (budget.latency)
         "time_jump": s.events["time_jump"],

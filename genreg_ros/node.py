@@ -39,7 +39,8 @@ replaces an older waiting one (`genreg_ros.sync.Handover`), so latency stays one
 memory is bounded by the sync queues. Every pair formed gets one `registration_status`, and every output of
 a pair, that status included, is published by the publisher thread in the order the pairs left the waiting
 slot. Bad input is a throttled warning plus a counted drop; the node carries on. Messages the middleware
-reports lost (QoS event message_lost) are counted per topic.
+reports lost (QoS event message_lost) are counted per topic, and so are the clouds a publisher sent that never
+came (gaps in its sequence numbers: a queue that overflowed while the process took no messages, included).
 
 Parameters: `genreg_ros.config` (the settings) and `genreg_ros.params` (their declaration and checks);
 what is published: `genreg_ros.policy`; guesses and tracking: `genreg_ros.tracking`; counters and
@@ -63,7 +64,7 @@ from rclpy.executors import ExternalShutdownException
 from rclpy.lifecycle import LifecycleNode, LifecycleState, TransitionCallbackReturn
 from rclpy.parameter import Parameter
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
-from rclpy.subscription import Subscription
+from rclpy.subscription import MessageInfo, Subscription
 from rclpy.task import Future
 from sensor_msgs.msg import PointCloud2
 from std_msgs.msg import Header
@@ -203,9 +204,7 @@ class RegisterNode(LifecycleNode):
         self._subs["guess"] = self.create_subscription(TransformStamped, "initial_guess", self._on_guess, 1)
         self._subs["initialpose"] = self.create_subscription(
             PoseWithCovarianceStamped, "initialpose", self._on_initialpose, 1)
-        with self._stats.lock:  # staleness and silent publishers count from activation
-            self._stats.start = time.monotonic()
-            self._stats.last_arrival = {SOURCE: None, TARGET: None}
+        self._stats.subscribed()  # staleness, silent publishers and sequence gaps count from activation
         reliability = {SOURCE: c.qos.reliability, TARGET: target}
         self._watch.watch({t: Watched(self._subs[t].topic_name, reliability[t]) for t in reliability if t in self._subs})
         self.get_logger().info(
@@ -220,7 +219,7 @@ class RegisterNode(LifecycleNode):
         """The `<topic>_cloud` subscription (serialised messages: `from_cdr` deserialises them 20x faster than
         rclpy), counting the messages the middleware reports lost; without that event (an rmw that lacks it)
         the subscription alone."""
-        args = (PointCloud2, f"{topic}_cloud", lambda m: self._on_cloud(topic, m), qos)
+        args = (PointCloud2, f"{topic}_cloud", lambda m, info: self._on_cloud(topic, m, info), qos)
         events = SubscriptionEventCallbacks(message_lost=lambda info: self._on_message_lost(topic, info))
         try:
             return self.create_subscription(*args, raw=True, event_callbacks=events)
@@ -317,11 +316,16 @@ class RegisterNode(LifecycleNode):
         return response
 
     # ----------------------------------------------------------------- callbacks (short)
-    def _on_cloud(self, topic: str, msg: PointCloud2 | bytes) -> None:
-        """One cloud, a message or its serialised bytes (the subscriptions' raw=True): checked and paired; a
-        pair replaces the waiting one, which is answered as superseded."""
+    def _on_cloud(self, topic: str, msg: PointCloud2 | bytes, info: MessageInfo | None = None) -> None:
+        """One cloud, a message or its serialised bytes (the subscriptions' raw=True), with its message info:
+        counted (and the clouds its publisher sent before it that never came), checked and paired; a pair
+        replaces the waiting one, which is answered as superseded."""
         now = time.monotonic()
-        self._stats.arrived(topic, now)
+        if missed := self._stats.arrived(topic, now, info):
+            self._report.warn(f"missed_{topic}", f"{missed} {topic} cloud(s) sent but never received (by the "
+                              f"publisher's sequence numbers): the subscription's queue (qos.depth "
+                              f"{self._config.qos.depth}) overflowed while the node took no messages, or they were "
+                              f"lost in transport; see {DOCS}")
         try:
             pair = self._intake.add(topic, msg, now, self._config)
             if pair is not None:

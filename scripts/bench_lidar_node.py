@@ -22,13 +22,14 @@ with depth 5 (SensorDataQoS), stamped 100 ms apart and sent at that pace, in fou
 Every scan is cast (6 moving cars and people around it) and serialised before the node starts.
 
 Accounting, per phase: a scan sent is answered (one registration_status for it, superseded ones included) or
-lost (none came: dropped before the node took it, which its diagnostics count as not received); of the
+lost (none came: dropped before the node took it, which its diagnostics count as missed); of the
 answered, published or not (and why: the status's `reason`); a published pose is wrong when it is 2 deg or
 0.25 m or more off its truth, and jumped when its status says it was not tracked from its start. Figures: TE median and largest of the published poses, the share within 0.1 m,
 the node's own latency (registration_status `latency_ms`: the scan's arrival in the node to its result)
 median and p95, and the scans until the first publication after the kidnap. For the run: the time from
 starting the node to its first diagnostics (map loaded and prepared), its CPU per scan and its resident
-memory (RSS, MB) when ready and at the end.
+memory (RSS, MB) when ready and at the end; the node's own counts of scans received and missed (`missed.source`:
+sent, never received, by the publisher's sequence numbers).
 
 ROS isolation: genreg_ros.environment.ros_environment (ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST, the shipped
 Fast DDS profile, a random ROS_DOMAIN_ID unless one is set).
@@ -46,7 +47,7 @@ from collections import Counter
 from dataclasses import dataclass
 from pathlib import Path
 
-from genreg_ros.replay.harness import Client, NodeProcess, ReplayOptions, restamp, ros_env
+from genreg_ros.replay.harness import Client, NodeProcess, ReplayOptions, node_counters, restamp, ros_env
 
 ros_env()  # before the first DDS participant of this process
 
@@ -276,6 +277,8 @@ def main(argv: list[str] | None = None) -> int:
         cpu = cpu_seconds(node.proc.pid) - cpu0
         rss_end = rss_mb(node.proc.pid)
         figures = {phase: phase_figures(stream, phase) for phase in phases}
+        time.sleep(1.5)  # the node's diagnostics after the last scan
+        counts = node_counters(client.latest_diagnostics() or {})
     finally:
         client.close()
         code = node.stop()
@@ -284,6 +287,9 @@ def main(argv: list[str] | None = None) -> int:
           f"lap(s)); node CPU {1e3 * cpu / max(sent, 1):.0f} ms a scan ({cpu / wall:.2f} cores); RSS {rss_ready:.0f} MB "
           f"ready, after each lap {', '.join(f'{r:.0f}' for r in rss_laps)} MB, {rss_end:.0f} MB at the end; load "
           f"average at end {load_text()}; node exit code {code}")
+    print(f"the node's counts: received {counts.get('received.source', 0)} scans, missed "
+          f"{counts.get('missed.source', 0)} (sent, never received), lost {counts.get('lost.source', 0)} (reported by "
+          f"the middleware), of {sent} sent")
     print()
     print("| phase | sent | answered | lost | published | wrong | jumped | not published: reasons | states | "
           "TE median / max m | TE < 0.1 m | latency p50 / p95 ms | first published |")
@@ -298,7 +304,7 @@ def main(argv: list[str] | None = None) -> int:
     if args.json:
         Path(args.json).write_text(json.dumps({"world": world.key, "ready_s": ready_s, "wall_s": wall, "cpu_s": cpu,
                                                "rss_ready_mb": rss_ready, "rss_laps_mb": rss_laps,
-                                               "rss_end_mb": rss_end, "phases": figures},
+                                               "rss_end_mb": rss_end, "node_counts": counts, "phases": figures},
                                               indent=1))
     return 0
 

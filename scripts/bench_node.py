@@ -540,6 +540,8 @@ def summarize_soak(args, client: Client, clouds: CloudSet, sent: list[PairResult
         "rate_hz": args.rate, "duration_s": duration, "warmup_s": warmup,
         "sent": n, "sent_rate_hz": n / duration,
         "node_received": {"source": deltas.get("received.source", 0), "target": deltas.get("received.target", 0)},
+        # sent but never received, by the publisher's sequence numbers (the node's `missed.*`)
+        "node_missed": {"source": deltas.get("missed.source", 0), "target": deltas.get("missed.target", 0)},
         "node_paired": node_paired, "node_registered": node_registered,
         "registered": len(reg), "registered_per_s": len(reg) / duration,
         "light": deltas.get("light", 0),  # registered with the light settings under the latency budget
@@ -586,7 +588,8 @@ def print_summary(m: dict, args) -> None:
         f"{Path(m['params_file']).name}")
     add(f"  input        {args.rate:g} Hz for {m['duration_s']:g} s: {m['sent']} pairs sent ({m['sent_rate_hz']:.1f} Hz, "
         f"{m['points_per_cloud']:.0f} points, {m['mb_per_cloud']:.1f} MB per cloud); node received "
-        f"{m['node_received']['source']} sources / {m['node_received']['target']} targets, paired {m['node_paired']}")
+        f"{m['node_received']['source']} sources / {m['node_received']['target']} targets (missed "
+        f"{m['node_missed']['source']} / {m['node_missed']['target']}), paired {m['node_paired']}")
     add(f"  registered   {m['registered']} pairs = {m['registered_per_s']:.1f} per second "
         f"({m['registered_per_s_after_warmup']:.1f} after the {m['warmup_s']:g} s warm-up); goal >= {GOAL_RATE:g}; "
         f"light (latency budget) {m['light']}")

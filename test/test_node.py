@@ -26,6 +26,8 @@ import pytest
 import rclpy
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 from geometry_msgs.msg import PoseWithCovarianceStamped, TransformStamped
+from hypothesis import given, settings
+from hypothesis import strategies as st
 from rclpy.event_handler import QoSSubscriptionEventType
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.parameter import Parameter
@@ -45,6 +47,7 @@ from genreg_core.errors import (
 from genreg_ros.cloud_file import CloudFileError, read_cloud
 from genreg_ros.config import NodeConfig
 from genreg_ros.conversions import msg_to_matrix
+from genreg_ros.diagnostics import Sequences
 from genreg_ros.node import RegisterNode, StartupError
 from genreg_ros.pipelines import failure_reason
 from genreg_ros.pointcloud2 import array_to_msg, read_points, xyz_to_msg
@@ -830,6 +833,60 @@ def test_lost_and_silent_input_is_counted_and_warned_with_its_cause(ns, untraine
     mine = [ln for ln in err.splitlines() if f"{ns.replace('/', '.')[1:]}.register_node" in ln]
     assert sum("publisher stopped delivering" in ln for ln in mine) == 2, mine  # once per topic, not per period
     assert "3 source cloud(s) lost by the middleware (5 in all)" in err
+
+
+@settings(max_examples=80, deadline=None)
+@given(st.lists(st.tuples(st.integers(0, 2), st.booleans()), max_size=80))
+def test_sequences_count_each_publishers_messages_that_never_came(plan):
+    """Three publishers number their messages 1, 2, ...; each message is delivered or not (the plan). Missed:
+    those not delivered after a publisher's first delivered one and before its last (what came after the last
+    cannot be seen), counted here by walking the plan, not by subtracting sequence numbers."""
+    seen, sent = Sequences(), [0, 0, 0]
+    delivered: list[list[bool]] = [[], [], []]
+    counted = 0
+    for who, arrives in plan:
+        sent[who] += 1
+        delivered[who].append(arrives)
+        if arrives:
+            gid = {"implementation_identifier": "rmw_fastrtps_cpp", "data": bytes([who]) * 24}
+            counted += seen.missed({"publication_sequence_number": sent[who], "publisher_gid": gid})
+    truth = 0
+    for flags in delivered:
+        came = [k for k, f in enumerate(flags) if f]
+        if came:
+            truth += sum(not f for f in flags[came[0]: came[-1]])
+    assert counted == truth
+    assert seen.counted == any(arrives for _, arrives in plan)
+    assert Sequences().missed(None) == 0 and Sequences().missed({"publication_sequence_number": None}) == 0
+
+
+def test_clouds_sent_while_the_node_takes_no_messages_are_counted_missed(ns, untrained_checkpoint, capfd):
+    """A node whose process takes no messages for a second (as while small_gicp prepares a large map, holding the
+    GIL) keeps only `qos.depth` clouds; the ones the middleware dropped meanwhile are counted as missed, so every
+    cloud sent is received or missed."""
+    with running_node(ns, untrained_checkpoint, **{"qos.depth": 2, "diagnostics.period": 0.1}) as h:
+        clouds = [make_pair(SMALL_T, 20.0 + 0.1 * k)[0] for k in range(13)]
+        h.pub_source.publish(clouds[0])
+        h.wait(lambda: h.node._stats.received["source"] >= 1, 5.0, "the first cloud")
+        add, held = h.node._intake.add, threading.Event()
+
+        def busy(*args):
+            if not held.is_set():
+                held.set()
+                time.sleep(1.0)
+            return add(*args)
+
+        h.node._intake.add = busy
+        for msg in clouds[1:]:
+            h.pub_source.publish(msg)
+            time.sleep(0.01)
+        h.wait(held.is_set, 5.0, "the busy callback")
+        time.sleep(1.5)
+        v = h.counters()
+        received, missed = int(v["received.source"]), int(v["missed.source"])
+        assert received + missed == len(clouds) and missed >= 8, v
+        assert v["lost.source"] == "0" and f"missed {missed} (sent, never received)" in h.status().message
+    assert "source cloud(s) sent but never received" in capfd.readouterr().err
 
 
 def test_target_file_errors_are_one_line_and_never_quote_the_file(tmp_path, capfd, monkeypatch):

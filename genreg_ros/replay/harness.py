@@ -302,10 +302,12 @@ class Client:
 
 
 def node_counters(values: dict[str, str]) -> dict[str, int]:
-    """The counters (registered, paired, light, received.*, dropped.*, failed.*) of a /diagnostics status's values."""
+    """The counters (registered, paired, light, received.*, missed.*, lost.*, dropped.*, failed.*) of a /diagnostics
+    status's values."""
     out = {}
     for key, value in values.items():
-        if key in ("registered", "paired", "light") or key.startswith(("dropped.", "failed.", "received.")):
+        if key in ("registered", "paired", "light") or key.startswith(("dropped.", "failed.", "received.", "missed.",
+                                                                        "lost.")):
             try:
                 out[key] = int(value)
             except ValueError:
