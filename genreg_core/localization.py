@@ -82,7 +82,7 @@ from scipy.spatial import cKDTree
 from genreg_core.checkpoint import resized
 from genreg_core.confidence import MAP_CALIBRATION, MAP_FEATURES, SPACINGS, map_features
 from genreg_core.config import SCENE_MODEL, SCENE_REGISTRATION, LocalizationConfig
-from genreg_core.errors import ConfigError, TooFewPointsError
+from genreg_core.errors import ConfigError, GenRegError, TooFewPointsError
 from genreg_core.geometry import apply_transform
 from genreg_core.place_index import VERSION as INDEX_VERSION
 from genreg_core.place_index import IndexGeometry, PlaceIndex, hit_pose
@@ -115,6 +115,7 @@ SPACING_SAMPLES = 20_000  # the map's resolution is the median nearest-neighbour
 RADIUS_QUANTILE = 0.9  # a scan's radius: this quantile of its points' distances from their centroid
 PLACE_CHUNK = 256  # place centres searched at once (bounds the memory of the neighbour lists)
 EXTENT_SAMPLES = 200_000  # the map's robust extent from this many of its points
+WARM_UP_POINTS = 20_000  # `MapLocalizer.warm_up`'s scan: this many map points
 # `MapLocalizer.track` aligns from a guess only when at least this share of the scan's sampled points lies in a
 # map-occupied cell of GICP's correspondence distance (`TargetIndex.near_share`): on a training campus every guess
 # tracked and every retrieved candidate had 0.48 or more (1,052 alignments: drives at 10 and 20 m/s, corridors
@@ -633,6 +634,26 @@ class MapLocalizer:
         if self.config.retrieve:
             self.place_index()
             self.whole_map()
+
+    def warm_up(self) -> None:
+        """Localise once, as the first scans will, a scan carved from the map (its `WARM_UP_POINTS` points
+        nearest the map's median point, moved to the origin): from its true pose (tracking) and, with the place
+        index, without a guess, so that the first real scan does not pay for loading compiled kernels (half a
+        second and more). Tracking's local map is left as it was; a piece the registration refuses (a map of
+        too few or degenerate points) is left to the first scan, which reports the error."""
+        centre = np.median(self.map, axis=0)
+        _, rows = self.tree.query(centre, k=min(len(self.map), WARM_UP_POINTS))
+        scan = self.map[np.sort(np.atleast_1d(rows))] - centre
+        local, pose = self._local, np.eye(4)
+        pose[:3, 3] = centre
+        try:
+            self.localize(scan, initial_guess=pose)
+            if self.config.retrieve:
+                self.localize(scan)
+        except GenRegError:
+            pass
+        finally:
+            self._local = local
 
     def place_index(self) -> PlaceIndex:
         """The map's place index (`genreg_core.place_index`; the index settings), built on first use and kept

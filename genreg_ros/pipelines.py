@@ -304,9 +304,11 @@ class MapPipeline(Pipeline):
         self._cache_dir = cache_dir
         self._state = Localization(context.config().map.lost_after)
         self._localizer: tuple[np.ndarray, MapLocalizer, str] | None = None  # (map points, localizer, frame)
-        if fixed is not None:  # a map file is prepared before the node is ready, not on the first scan
+        if fixed is not None:  # a map file is prepared and warmed up before the node is ready, not on the first scan
             try:
-                self._map_localizer(registrar, context.config(), fixed.xyz, fixed.frame).prepare()
+                localizer = self._map_localizer(registrar, context.config(), fixed.xyz, fixed.frame)
+                localizer.prepare()
+                localizer.warm_up()
             except NotRegistered:
                 pass  # the first scan meets the same error and counts it
 

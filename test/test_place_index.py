@@ -15,6 +15,7 @@ from hypothesis import strategies as st
 from genreg_core import score
 from genreg_core.config import LocalizationConfig
 from genreg_core.data.synthetic_lidar import LidarSensor, Scene, lidar_scan, sensor_pose, street_scene
+from genreg_core.errors import TooFewPointsError
 from genreg_core.geometry import apply_transform
 from genreg_core.localization import MapLocalizer
 from genreg_core.metrics import transform_errors
@@ -216,6 +217,42 @@ def test_a_guess_that_puts_the_scan_off_the_map_is_not_tracked_and_the_index_pla
         assert re < PLACED_RE_DEG and te < PLACED_TE_M and result.confidence >= 0.5, (re, te, result.confidence)
     stale = loc.track(voxelised, T @ sensor_pose(2.0, 0.0, 0.0, np.radians(5.0)), local=loc.whole_map())
     assert stale is not None
+
+
+def test_warming_up_places_nothing_differently(street: tuple[Scene, np.ndarray]) -> None:
+    """`warm_up` (the node runs it before it is ready) localises a scan carved from the map and leaves no
+    trace: with and without the place index, a localizer warmed up gives every scan, with a guess and
+    without, the same pose and confidence as one that was not."""
+    scene, map_xyz = street
+    rng = np.random.default_rng(21)
+    T = sensor_pose(-20.0, 0.8, 1.8, 2.0)
+    scan = lidar_scan(scene, T, rng, SENSOR).points.astype(np.float64)
+    guess = T @ sensor_pose(0.3, -0.2, 0.05, np.radians(3.0))
+    for config in (LocalizationConfig(retrieve=8, map_voxel=0.2), LocalizationConfig(map_voxel=0.2)):
+        warmed, cold = MapLocalizer(map_xyz, config=config), MapLocalizer(map_xyz, config=config)
+        warmed.warm_up()
+        for start in (guess, None, guess):  # the guess again: tracking's local map as the first scan left it
+            a, b = warmed.localize(scan, initial_guess=start), cold.localize(scan, initial_guess=start)
+            np.testing.assert_allclose(a.transformation, b.transformation, atol=1e-9)
+            assert a.confidence == pytest.approx(b.confidence, abs=1e-9) and a.start == b.start
+            if start is not None or config.retrieve:  # (a street's places, screened without a guess: not asked)
+                re, te = transform_errors(a.transformation, T)
+                assert re < PLACED_RE_DEG and te < PLACED_TE_M, (re, te)
+
+
+def test_a_warm_up_the_registration_refuses_is_left_to_the_first_scan(street: tuple[Scene, np.ndarray],
+                                                                       monkeypatch: pytest.MonkeyPatch) -> None:
+    """The node warms a map up while it configures: a named registration error there does not escape (the
+    first scan meets it and reports it), and tracking's local map stays as it was."""
+    loc = MapLocalizer(street[1], config=LocalizationConfig(map_voxel=0.2))
+
+    def refuse(scan: np.ndarray, initial_guess: np.ndarray | None = None) -> None:
+        loc.local(np.zeros(3), 10.0)  # as tracking does before it can fail
+        raise TooFewPointsError("source has 3 points after voxelising")
+
+    monkeypatch.setattr(loc, "localize", refuse)
+    loc.warm_up()
+    assert loc._local is None
 
 
 @given(st.integers(0, 2**32 - 1), st.floats(0.05, 3.0))
