@@ -1,7 +1,7 @@
 #!/usr/bin/env python3
 """register_node in a large LiDAR map, fed at 10 Hz: map mode through DDS, scan by scan, against the true poses.
 
-    python scripts/bench_lidar_node.py [--seed 7] [--drive-scans 200] [--walk-scans 150] [--json PATH]
+    python scripts/bench_lidar_node.py [--seed 7] [--drive-scans 200] [--walk-scans 150] [--json PATH] [--plot PNG]
 
 The node runs in its own process (as with `ros2 run`) with config/genreg_lidar_map.yaml as shipped (and
 `diagnostics.period` 1 s). Its map is `bench_lidar_map.py`'s campus of that seed (held out: 7 and up; 4 x 3
@@ -29,7 +29,8 @@ the node's own latency (registration_status `latency_ms`: the scan's arrival in 
 median and p95, and the scans until the first publication after the kidnap. For the run: the time from
 starting the node to its first diagnostics (map loaded and prepared), its CPU per scan and its resident
 memory (RSS, MB) when ready and at the end; the node's own counts of scans received and missed (`missed.source`:
-sent, never received, by the publisher's sequence numbers).
+sent, never received, by the publisher's sequence numbers), and the latency of the first scan answered (the
+first localisation after the node is ready). `--plot`: the run scan by scan (`plot_run`).
 
 ROS isolation: genreg_ros.environment.ros_environment (ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST, the shipped
 Fast DDS profile, a random ROS_DOMAIN_ID unless one is set).
@@ -112,6 +113,7 @@ def parse(argv: list[str] | None = None) -> argparse.Namespace:
     p.add_argument("--work", default="runs/bench_lidar_node", help="where the map file and the node's log go")
     p.add_argument("--cache-dir", default="cache/lidar_world", help="where world maps are kept")
     p.add_argument("--json", default=None, help="also write the figures here")
+    p.add_argument("--plot", default=None, help="also draw the run scan by scan (latency, TE) into this PNG")
     return p.parse_args(argv)
 
 
@@ -184,25 +186,52 @@ class Stream:
             time.sleep(0.1)
 
 
-def phase_figures(stream: Stream, phase: str) -> dict[str, object]:
-    """The accounting and figures of one phase's scans (see the module's docstring)."""
+@dataclass(frozen=True)
+class Answer:
+    """One scan sent and what came of it: its status values ({} when none came: lost), and, when published,
+    the published pose's errors against the truth (RE deg, TE m)."""
+
+    sent: Sent
+    status: dict[str, str]
+    errors: tuple[float, float] | None
+
+    @property
+    def answered(self) -> bool:
+        return bool(self.status)
+
+    @property
+    def latency_ms(self) -> float | None:
+        return float(self.status["latency_ms"]) if "latency_ms" in self.status else None
+
+
+def answers(stream: Stream) -> list[Answer]:
+    """Every scan sent, in order, with its answer: published when its status says so and its transform came."""
     client = stream.client
     with client.lock:
         status, transforms = dict(client.status), dict(client.transforms)
-    sent = [s for s in stream.sent if s.phase == phase]
-    answered = [s for s in sent if s.stamp in status]
-    published = [s for s in answered if status[s.stamp].get("published") == "true" and s.stamp in transforms]
-    errors = [transform_errors(transforms[s.stamp].T, s.truth) for s in published]
-    te = np.array([e[1] for e in errors])
-    latency = np.array([float(status[s.stamp]["latency_ms"]) for s in answered if "latency_ms" in status[s.stamp]])
-    first = next((k for k, s in enumerate(sent) if s in published), None)
+    out = []
+    for s in stream.sent:
+        values = status.get(s.stamp, {})
+        published = values.get("published") == "true" and s.stamp in transforms
+        out.append(Answer(s, values, tuple(transform_errors(transforms[s.stamp].T, s.truth)) if published else None))
+    return out
+
+
+def phase_figures(stream: Stream, phase: str) -> dict[str, object]:
+    """The accounting and figures of one phase's scans (see the module's docstring)."""
+    sent = [a for a in answers(stream) if a.sent.phase == phase]
+    answered = [a for a in sent if a.answered]
+    published = [a for a in answered if a.errors is not None]
+    te = np.array([a.errors[1] for a in published])
+    latency = np.array([a.latency_ms for a in answered if a.latency_ms is not None])
+    first = next((k for k, a in enumerate(sent) if a.errors is not None), None)
     return {
         "sent": len(sent), "answered": len(answered), "lost": len(sent) - len(answered),
-        "published": len(published), "wrong": sum(not placed(*e) for e in errors),
-        "jumped": sum(status[s.stamp].get("jumped") == "true" for s in published),
-        "reasons": dict(Counter(status[s.stamp].get("reason", "") for s in answered
-                                if status[s.stamp].get("published") != "true")),
-        "states": dict(Counter(status[s.stamp].get("localization", "-") for s in answered)),
+        "published": len(published), "wrong": sum(not placed(*a.errors) for a in published),
+        "jumped": sum(a.status.get("jumped") == "true" for a in published),
+        "reasons": dict(Counter(a.status.get("reason", "") for a in answered
+                                if a.status.get("published") != "true")),
+        "states": dict(Counter(a.status.get("localization", "-") for a in answered)),
         "te_median_m": float(np.median(te)) if len(te) else float("nan"),
         "te_max_m": float(te.max()) if len(te) else float("nan"),
         "within_0.1_m": f"{int((te < 0.1).sum())}/{len(te)}",
@@ -210,6 +239,43 @@ def phase_figures(stream: Stream, phase: str) -> dict[str, object]:
         "latency_ms_p95": float(np.percentile(latency, 95)) if len(latency) else float("nan"),
         "first_published": first,
     }
+
+
+def plot_run(run: list[Answer], path: Path, title: str) -> None:
+    """The run scan by scan against the time it was sent: the node's latency (above; a scan not published is
+    a cross) and each published pose's TE (below, log scale; wrong ones, 2 deg or 0.25 m off, in red), the
+    phases in colour, the 30 ms tracking goal and the 0.1 m line drawn."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    t0 = run[0].sent.at if run else 0.0
+    fig, (top, bottom) = plt.subplots(2, 1, figsize=(10, 6), sharex=True)
+    for k, phase in enumerate(dict.fromkeys(a.sent.phase for a in run)):
+        colour = f"C{k}"
+        mine = [a for a in run if a.sent.phase == phase]
+        done = [a for a in mine if a.errors is not None and a.latency_ms is not None]
+        held = [a for a in mine if a.errors is None and a.latency_ms is not None]
+        top.scatter([a.sent.at - t0 for a in done], [a.latency_ms for a in done], s=6, color=colour, label=phase)
+        top.scatter([a.sent.at - t0 for a in held], [a.latency_ms for a in held], s=14, marker="x", color=colour)
+        right = [a for a in done if placed(*a.errors)]
+        bottom.scatter([a.sent.at - t0 for a in right], [max(a.errors[1], 1e-4) for a in right], s=6, color=colour)
+        wrong = [a for a in done if not placed(*a.errors)]
+        bottom.scatter([a.sent.at - t0 for a in wrong], [a.errors[1] for a in wrong], s=14, color="red")
+    top.axhline(30.0, color="grey", lw=0.8, ls="--")
+    top.set_yscale("log")
+    top.set_ylabel("node latency, ms")
+    top.legend(loc="upper right", fontsize=8, markerscale=2)
+    top.set_title(title, fontsize=10)
+    bottom.axhline(0.1, color="grey", lw=0.8, ls="--")
+    bottom.set_yscale("log")
+    bottom.set_ylabel("TE of published poses, m")
+    bottom.set_xlabel("time sent, s")
+    fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
 
 
 def misclick(truth: np.ndarray) -> PoseWithCovarianceStamped:
@@ -277,6 +343,7 @@ def main(argv: list[str] | None = None) -> int:
         cpu = cpu_seconds(node.proc.pid) - cpu0
         rss_end = rss_mb(node.proc.pid)
         figures = {phase: phase_figures(stream, phase) for phase in phases}
+        run = answers(stream)
         time.sleep(1.5)  # the node's diagnostics after the last scan
         counts = node_counters(client.latest_diagnostics() or {})
     finally:
@@ -287,6 +354,9 @@ def main(argv: list[str] | None = None) -> int:
           f"lap(s)); node CPU {1e3 * cpu / max(sent, 1):.0f} ms a scan ({cpu / wall:.2f} cores); RSS {rss_ready:.0f} MB "
           f"ready, after each lap {', '.join(f'{r:.0f}' for r in rss_laps)} MB, {rss_end:.0f} MB at the end; load "
           f"average at end {load_text()}; node exit code {code}")
+    first = next((a for a in run if a.latency_ms is not None), None)
+    if first is not None:
+        print(f"the first scan answered (placed without a guess, or not) in {first.latency_ms:.0f} ms")
     print(f"the node's counts: received {counts.get('received.source', 0)} scans, missed "
           f"{counts.get('missed.source', 0)} (sent, never received), lost {counts.get('lost.source', 0)} (reported by "
           f"the middleware), of {sent} sent")
@@ -301,10 +371,15 @@ def main(argv: list[str] | None = None) -> int:
               f"{reasons} | "
               f"{states} | {f['te_median_m']:.3f} / {f['te_max_m']:.3f} | {f['within_0.1_m']} | "
               f"{f['latency_ms_p50']:.0f} / {f['latency_ms_p95']:.0f} | {f['first_published']} |")
+    if args.plot:
+        plot_run(run, Path(args.plot), f"register_node in {world.key} at 10 Hz: {args.laps} lap(s), {sent} scans\n"
+                 f"{code_state()}")
+        print(f"wrote {args.plot}")
     if args.json:
         Path(args.json).write_text(json.dumps({"world": world.key, "ready_s": ready_s, "wall_s": wall, "cpu_s": cpu,
                                                "rss_ready_mb": rss_ready, "rss_laps_mb": rss_laps,
-                                               "rss_end_mb": rss_end, "node_counts": counts, "phases": figures},
+                                               "rss_end_mb": rss_end, "node_counts": counts, "phases": figures,
+                                               "first_latency_ms": None if first is None else first.latency_ms},
                                               indent=1))
     return 0
 

@@ -75,3 +75,24 @@ def test_scans_go_out_as_a_driver_publishes_them(bench):
     decoded = read_points(msg)
     assert decoded.num_input == len(cast.points) and len(decoded.points) == len(hits)
     np.testing.assert_allclose(np.sort(decoded.points, axis=0), np.sort(hits, axis=0))
+
+
+def test_the_run_is_drawn_scan_by_scan_from_the_same_answers(bench, tmp_path):
+    """`answers` pairs each scan sent with its status and, when published, its errors against the truth (a
+    scan whose transform never came is not published); `plot_run` draws them into a PNG."""
+    truth = [make_transform(np.eye(3), [float(k), 0.0, 0.0]) for k in range(4)]
+    sent = [bench.Sent(10 + k, "drive" if k < 2 else "walk", truth[k], 0.1 * k) for k in range(4)]
+    status = {10: {"published": "true", "latency_ms": "15"}, 11: {"published": "true", "latency_ms": "40"},
+              12: {"published": "false", "reason": "failed.low_confidence_rejected", "latency_ms": "200"}}
+    transforms = {10: Output(0.0, "map", "velodyne", truth[0] @ make_transform(np.eye(3), [0.02, 0.0, 0.0]))}
+    client = SimpleNamespace(lock=threading.Lock(), status=status, transforms=transforms)
+    run = bench.answers(SimpleNamespace(client=client, sent=sent))
+    assert [a.answered for a in run] == [True, True, True, False]
+    assert run[0].errors == pytest.approx((0.0, 0.02), abs=1e-9) and run[1].errors is None  # no transform came
+    assert [a.latency_ms for a in run] == [15.0, 40.0, 200.0, None]
+    path = tmp_path / "run.png"
+    bench.plot_run(run, path, "test")
+    import matplotlib.image
+
+    height, width, _ = matplotlib.image.imread(path).shape
+    assert (width, height) == (1100, 660)
