@@ -217,9 +217,9 @@ def answers(stream: Stream) -> list[Answer]:
     return out
 
 
-def phase_figures(stream: Stream, phase: str) -> dict[str, object]:
-    """The accounting and figures of one phase's scans (see the module's docstring)."""
-    sent = [a for a in answers(stream) if a.sent.phase == phase]
+def phase_figures(run: list[Answer], phase: str) -> dict[str, object]:
+    """The accounting and figures of one phase's scans of the run's `answers` (see the module's docstring)."""
+    sent = [a for a in run if a.sent.phase == phase]
     answered = [a for a in sent if a.answered]
     published = [a for a in answered if a.errors is not None]
     te = np.array([a.errors[1] for a in published])
@@ -342,8 +342,8 @@ def main(argv: list[str] | None = None) -> int:
         wall = time.monotonic() - t0
         cpu = cpu_seconds(node.proc.pid) - cpu0
         rss_end = rss_mb(node.proc.pid)
-        figures = {phase: phase_figures(stream, phase) for phase in phases}
         run = answers(stream)
+        figures = {phase: phase_figures(run, phase) for phase in phases}
         time.sleep(1.5)  # the node's diagnostics after the last scan
         counts = node_counters(client.latest_diagnostics() or {})
     finally:

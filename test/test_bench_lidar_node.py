@@ -52,7 +52,7 @@ def test_a_phase_counts_each_scan_once_by_its_answer_and_its_error_against_the_t
     transforms = {1000 + k: Output(0.0, "map", "velodyne", truth[k] @ make_transform(np.eye(3), [0.0, d, 0.0]))
                   for k, d in enumerate(off) if d is not None}
     client = SimpleNamespace(lock=threading.Lock(), status=status, transforms=transforms)
-    f = bench.phase_figures(SimpleNamespace(client=client, sent=sent), "walk")
+    f = bench.phase_figures(bench.answers(SimpleNamespace(client=client, sent=sent)), "walk")
     assert (f["sent"], f["answered"], f["lost"], f["published"], f["wrong"], f["jumped"]) == (5, 4, 1, 3, 1, 1)
     assert f["reasons"] == {"dropped.superseded": 1} and f["within_0.1_m"] == "2/3" and f["first_published"] == 0
     assert f["te_median_m"] == pytest.approx(0.05) and f["te_max_m"] == pytest.approx(0.3)
