@@ -308,7 +308,10 @@ class MapPipeline(Pipeline):
             try:
                 localizer = self._map_localizer(registrar, context.config(), fixed.xyz, fixed.frame)
                 localizer.prepare()
+                t0 = time.perf_counter()
                 localizer.warm_up()
+                self._ctx.report.info(f"map warmed up in {time.perf_counter() - t0:.1f} s (a piece of it localised, "
+                                      "so that the first scan does not load compiled kernels)")
             except NotRegistered:
                 pass  # the first scan meets the same error and counts it
 
