@@ -83,7 +83,7 @@ from genreg_core.checkpoint import resized
 from genreg_core.confidence import MAP_CALIBRATION, MAP_FEATURES, SPACINGS, map_features
 from genreg_core.config import SCENE_MODEL, SCENE_REGISTRATION, LocalizationConfig
 from genreg_core.errors import ConfigError, GenRegError, TooFewPointsError
-from genreg_core.geometry import apply_transform
+from genreg_core.geometry import apply_transform, make_transform
 from genreg_core.place_index import VERSION as INDEX_VERSION
 from genreg_core.place_index import IndexGeometry, PlaceIndex, hit_pose
 from genreg_core.prepare import check_transform, robust_extent, validate_cloud
@@ -644,10 +644,9 @@ class MapLocalizer:
         centre = np.median(self.map, axis=0)
         _, rows = self.tree.query(centre, k=min(len(self.map), WARM_UP_POINTS))
         scan = self.map[np.sort(np.atleast_1d(rows))] - centre
-        local, pose = self._local, np.eye(4)
-        pose[:3, 3] = centre
+        local = self._local
         try:
-            self.localize(scan, initial_guess=pose)
+            self.localize(scan, initial_guess=make_transform(np.eye(3), centre))
             if self.config.retrieve:
                 self.localize(scan)
         except GenRegError:
