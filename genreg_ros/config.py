@@ -233,6 +233,14 @@ class NodeConfig:
     map: MapParams = setting(MapParams(), "Map mode (relocalisation in a prior map).")
     budget: BudgetParams = setting(BudgetParams(), "The latency budget under load.")
     source_frame: str = setting("", "Source frame id; empty: the source header's frame_id.")
+    base_frame: str = setting("", "Localise this frame (e.g. base_link, z up) instead of the source cloud's: each "
+                              "source cloud, once preprocessed in its own frame, is moved into it by base_T_source, "
+                              "and the transform, pose, registration_status and guesses (initial_guess, initialpose) "
+                              "are this frame's (the child frame). Empty: the source cloud's frame.", start_up=True)
+    base_T_source: tuple[float, ...] = setting((), "With base_frame: the source sensor's mounting on it, "
+                                               "T_base_source, [x, y, z, qx, qy, qz, qw] (m) or 16 row-major 4x4 "
+                                               "values (what a static transform from base_frame to the sensor's "
+                                               "frame says).")
     target_frame: str = setting("", "Target frame id; empty: the target header's frame_id.")
     max_points: int = setting(1_000_000, "Clouds with more points (width * height) are dropped.", low=1,
                               high=100_000_000)
@@ -264,6 +272,10 @@ class NodeConfig:
         check_ranges(self)
         self.registration_config()  # the core's own checks (e.g. the device name)
         self.initial_guess_matrix()
+        if bool(self.base_frame) != bool(self.base_T_source):
+            raise ConfigError("base_frame and base_T_source go together: give both (the frame localised and the "
+                              "source sensor's mounting on it) or neither")
+        self.base_T_source_matrix()
         if self.target_file and not self.target_frame:
             raise ConfigError("target_file needs target_frame (the file has no frame id)")
         if self.map.enabled and self.workers != 1:
@@ -281,26 +293,37 @@ class NodeConfig:
 
     def initial_guess_matrix(self) -> np.ndarray | None:
         """The initial_guess setting as a 4x4 T_target_source (None if empty); ConfigError if not rigid."""
-        v = np.asarray(self.initial_guess, dtype=np.float64)
-        if v.size == 0:
-            return None
-        if v.size == 7:
-            try:
-                return pose_matrix(v[:3], v[3:])
-            except ValueError:
-                raise ConfigError("initial_guess quaternion (qx, qy, qz, qw) must not be zero") from None
-        if v.size == 16:
-            from genreg_core.prepare import check_transform  # the core's check (imports torch: only here)
+        return transform_setting(self.initial_guess, "initial_guess")
 
-            T = v.reshape(4, 4)
-            try:
-                check_transform(T, "initial_guess")
-            except InvalidPointCloudError as exc:
-                raise ConfigError(str(exc)) from None
-            if not np.allclose(T[3], [0, 0, 0, 1]):
-                raise ConfigError("initial_guess must be a rigid transform (last row 0 0 0 1)")
-            return T
-        raise ConfigError(f"initial_guess must have 0, 7 or 16 values, got {v.size}")
+    def base_T_source_matrix(self) -> np.ndarray | None:
+        """The base_T_source setting as a 4x4 T_base_source (None if empty: no base_frame); ConfigError if not
+        rigid."""
+        return transform_setting(self.base_T_source, "base_T_source")
+
+
+def transform_setting(values: tuple[float, ...], name: str) -> np.ndarray | None:
+    """A transform setting's 4x4 (None if empty): [x, y, z, qx, qy, qz, qw] or 16 row-major values;
+    ConfigError, naming the setting, if it is neither or not rigid."""
+    v = np.asarray(values, dtype=np.float64)
+    if v.size == 0:
+        return None
+    if v.size == 7:
+        try:
+            return pose_matrix(v[:3], v[3:])
+        except ValueError:
+            raise ConfigError(f"{name} quaternion (qx, qy, qz, qw) must not be zero") from None
+    if v.size == 16:
+        from genreg_core.prepare import check_transform  # the core's check (imports torch: only here)
+
+        T = v.reshape(4, 4)
+        try:
+            check_transform(T, name)
+        except InvalidPointCloudError as exc:
+            raise ConfigError(str(exc)) from None
+        if not np.allclose(T[3], [0, 0, 0, 1]):
+            raise ConfigError(f"{name} must be a rigid transform (last row 0 0 0 1)")
+        return T
+    raise ConfigError(f"{name} must have 0, 7 or 16 values, got {v.size}")
 
 
 def registration_overrides(config: RegistrationConfig) -> dict[str, Any]:

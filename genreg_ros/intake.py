@@ -111,7 +111,8 @@ class Intake:
         bad_stamp = stamp_error(msg.header)
         if bad_stamp:
             return self._drop("bad_stamp", f"{topic} cloud: {bad_stamp}")
-        frame = (c.source_frame if topic == SOURCE else c.target_frame) or msg.header.frame_id
+        # the frame a source's pose is of: base_frame (the cloud is moved into it), else the sensor's
+        frame = ((c.base_frame or c.source_frame) if topic == SOURCE else c.target_frame) or msg.header.frame_id
         if not frame:
             return self._drop("empty_frame_id", f"{topic} cloud has an empty header.frame_id and {topic}_frame is unset")
         try:

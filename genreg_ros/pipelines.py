@@ -36,6 +36,7 @@ import numpy as np
 
 from genreg_core.config import RegistrationConfig
 from genreg_core.errors import GenRegError, TooFewPointsError
+from genreg_core.geometry import apply_transform
 from genreg_core.preprocess import PreprocessConfig, preprocess
 from genreg_ros.budget import LatencyBudget
 from genreg_ros.config import NodeConfig
@@ -86,6 +87,7 @@ class Prepared:
     target_points: np.ndarray  # preprocessed (a map: as decoded)
     decode_s: float
     preprocess_s: float
+    base_T_source: np.ndarray | None = None  # base_frame: the source points were moved into it by this
 
 
 class NotRegistered(Exception):
@@ -177,9 +179,12 @@ class Pipeline(ABC):
             target_points, t_target = self._target(pair.target, c.max_points, target_preprocess)
         except PointCloud2Error as exc:
             raise NotRegistered("dropped", exc.reason, f"target cloud: {exc}") from None
-        source_points = preprocess(src.points, c.preprocess)
+        source_points = preprocess(src.points, c.preprocess)  # range and crop: the sensor's own frame
+        base_T_source = c.base_T_source_matrix()
+        if base_T_source is not None:  # localise base_frame: the cloud moved into it
+            source_points = apply_transform(base_T_source, source_points)
         t2 = time.perf_counter()
-        return Prepared(src, source_points, target_points, (t1 - t0) + t_target, (t2 - t1) - t_target)
+        return Prepared(src, source_points, target_points, (t1 - t0) + t_target, (t2 - t1) - t_target, base_T_source)
 
     def _target(self, target: Target, max_points: int, pre: PreprocessConfig | None) -> tuple[np.ndarray, float]:
         """The target's points, preprocessed with `pre` (None: as decoded), and the decoding time; cached while
@@ -239,7 +244,7 @@ class Pipeline(ABC):
                            continues=motion_continues(start.origin, jumped))
         return Publication(status, Outputs(header, prepared.source, pair.source.frame, result, latency,
                                            prepared.decode_s, figures(prepared, result, *times),
-                                           verdict.low_confidence, registered_decoded))
+                                           verdict.low_confidence, registered_decoded, prepared.base_T_source))
 
     def _unanswered(self, pair: CloudPair, counter: Literal["dropped", "failed"], reason: str,
                     text: str) -> Publication:

@@ -20,6 +20,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
+import numpy as np
 from builtin_interfaces.msg import Time
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from geometry_msgs.msg import PoseWithCovarianceStamped, TransformStamped
@@ -59,6 +60,7 @@ class Outputs:
     timings: dict[str, float]
     low_confidence: bool
     registered_decoded: bool  # the registered points were the decoded ones (no preprocessing changed them)
+    base_T_source: np.ndarray | None = None  # the result is base_frame's pose: the decoded cloud's mounting on it
 
 
 @dataclass(frozen=True)
@@ -146,11 +148,12 @@ class Publishers:
             return
         result, header = job.result, job.header
         t0 = time.perf_counter()
-        T_target_source = result.transformation
+        T_target_source = result.transformation  # the source frame's (base_frame's, if set) pose
         if job.registered_decoded and job.source.points.dtype == result.aligned_source.dtype:
             aligned = replace_points(header, job.source, result.aligned_source)  # the API moved these points
-        else:
-            aligned = transform_cloud(header, job.source, T_target_source)
+        else:  # the decoded cloud, in its sensor's frame (mounted on base_frame by base_T_source, if set)
+            sensor = T_target_source if job.base_T_source is None else T_target_source @ job.base_T_source
+            aligned = transform_cloud(header, job.source, sensor)
         transform = matrix_to_msg(T_target_source, header, job.source_frame)
         pose = matrix_to_pose_msg(T_target_source, header, result.covariance)
         t1 = time.perf_counter()

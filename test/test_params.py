@@ -137,6 +137,18 @@ def test_a_16_value_initial_guess_must_be_rigid():
             NodeConfig(initial_guess=tuple(bad))
 
 
+def test_base_T_source_is_the_sensors_mounting():
+    """[x, y, z, qx, qy, qz, qw] and the 16-value form give the same T_base_source (scipy's quaternion)."""
+    from scipy.spatial.transform import Rotation
+
+    q = Rotation.from_euler("ZYX", [0.3, 0.2, -0.1]).as_quat()
+    c = NodeConfig(base_frame="base_link", base_T_source=(0.4, 0.1, 1.8, *q))
+    T = c.base_T_source_matrix()
+    np.testing.assert_allclose(T[:3, :3], Rotation.from_quat(q).as_matrix(), atol=1e-12)
+    assert T[:3, 3].tolist() == [0.4, 0.1, 1.8] and NodeConfig().base_T_source_matrix() is None
+    np.testing.assert_allclose(NodeConfig(base_frame="b", base_T_source=tuple(T.ravel())).base_T_source_matrix(), T)
+
+
 def test_distance_settings_are_metres_with_auto():
     for name in ("pdsac.inlier_threshold", "refine.max_correspondence_distance", "refine.guard_distance"):
         s = params.BY_NAME[name]
@@ -190,6 +202,10 @@ def test_ros_values_map_back_to_the_core_configs():
     ({"initial_guess": [0.0] * 5}, "initial_guess must have 0, 7 or 16 values"),
     ({"initial_guess": [0.0] * 7}, "quaternion"),
     ({"registration.device": "gpu"}, "device"),
+    ({"base_frame": "base_link"}, "base_frame and base_T_source go together"),
+    ({"base_T_source": [0.0, 0.0, 1.8, 0.0, 0.0, 0.0, 1.0]}, "base_frame and base_T_source go together"),
+    ({"base_frame": "base_link", "base_T_source": [0.0] * 7}, "base_T_source quaternion"),
+    ({"base_frame": "base_link", "base_T_source": [1.0] * 16}, "base_T_source"),
 ])
 def test_invalid_values_are_named(values, text):
     with pytest.raises(ConfigError, match=text):
