@@ -13,6 +13,7 @@ from pathlib import Path
 
 import numpy as np
 from scipy.spatial import cKDTree
+from scipy.spatial.transform import Rotation
 
 from genreg_core.data import lidar_world as lw
 
@@ -42,8 +43,9 @@ def table_rows(report: str) -> dict[str, list[str]]:
 def test_quick_global_placed_share_matches_an_independent_truth(tmp_path):
     out = tmp_path / "run"
     done = subprocess.run(
-        [sys.executable, "scripts/bench_lidar_map.py", "--quick", "--sections", "global,mirrored", "--scans", str(SCANS),
-         "--indoor-scans", "0", "--mirrored-scans", "2", "--threads", "2", "--no-progress", "--out", str(out)],
+        [sys.executable, "scripts/bench_lidar_map.py", "--quick", "--sections", "global,mirrored,tilted", "--scans",
+         str(SCANS), "--indoor-scans", "0", "--mirrored-scans", "2", "--tilted-scans", "2", "--threads", "2",
+         "--no-progress", "--out", str(out)],
         check=False, cwd=REPO, capture_output=True, text=True, timeout=300)
     assert done.returncode == 0, done.stderr[-3000:]
     report = (out / "report.md").read_text()
@@ -86,6 +88,26 @@ def test_quick_global_placed_share_matches_an_independent_truth(tmp_path):
         assert rec["confident_wrong"] == confident_wrong
     assert sum(placed) == placed_reported
     assert sum(placed) >= SCANS // 2, f"only {sum(placed)} of {SCANS} held-out scans placed on a one-block world"
+
+    # the tilted section: a sensor 1.8 m above the base, 0.4 m forward, pitched down 20 deg, rolled 4 deg; its scans
+    # judged against the sensor's pose in its own frame, against the base's (on the ground) once moved into it
+    mount = np.eye(4)
+    mount[:3, :3] = Rotation.from_euler("ZYX", [0.0, np.radians(20.0), np.radians(4.0)]).as_matrix()
+    mount[:3, 3] = [0.4, 0.0, 1.8]
+    bases = lw.test_poses(world, 2, np.random.default_rng([meta["seed"], meta["streams"]["tilted"]]), height=0.0)
+    tilted = [r for r in results["records"] if r["section"] == "tilted"]
+    kinds = list(dict.fromkeys(r["kind"] for r in tilted))
+    assert len(tilted) == 6 and len(kinds) == 3 and "base_link" in kinds[2], kinds
+    level = np.eye(4)
+    level[:3, 3] = mount[:3, 3]
+    truth_of = {kinds[0]: lambda base: base @ level, kinds[1]: lambda base: base @ mount, kinds[2]: lambda base: base}
+    for rec in tilted:
+        np.testing.assert_allclose(rec["truth"], truth_of[rec["kind"]](bases[rec["i"]]), atol=1e-9)
+    sensor = bases[0] @ mount
+    scan = lw.culled_scan(world.scene, sensor, np.random.default_rng(0)).points.astype(np.float64)
+    assert median_gap(scan, sensor, tree) < 0.1  # the tilted sensor's scan lies on the map at its pose
+    assert median_gap(scan @ mount[:3, :3].T + mount[:3, 3], bases[0], tree) < 0.1  # moved into the base: at the base's
+    assert sum(r["placed"] for r in tilted if r["kind"] == kinds[2]) >= 1, tilted
 
 
 def test_seated_tells_the_true_place_from_one_the_scan_does_not_fit(monkeypatch):
