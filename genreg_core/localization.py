@@ -84,8 +84,8 @@ from genreg_core.confidence import MAP_CALIBRATION, MAP_FEATURES, SPACINGS, map_
 from genreg_core.config import SCENE_MODEL, SCENE_REGISTRATION, LocalizationConfig
 from genreg_core.errors import ConfigError, GenRegError, TooFewPointsError
 from genreg_core.geometry import apply_transform, make_transform
+from genreg_core.place_index import ENCLOSING_REACH, IndexGeometry, PlaceIndex, hit_pose
 from genreg_core.place_index import VERSION as INDEX_VERSION
-from genreg_core.place_index import IndexGeometry, PlaceIndex, hit_pose
 from genreg_core.prepare import check_transform, robust_extent, validate_cloud
 from genreg_core.preprocess import voxel_downsample
 from genreg_core.refine import GICPTarget, VoxelTarget, gicp_target
@@ -122,6 +122,7 @@ WARM_UP_POINTS = 20_000  # `MapLocalizer.warm_up`'s scan: this many map points
 # from guesses 1 m off, off-map scans); a guess moved on at the speed of a kidnap 0.001
 MIN_NEAR_SHARE = 0.05
 AS_WELL_FITTED = "as well fitted"  # `MapLocalizer.flat`'s name of a flat axis among a result's unconstrained motions
+IN_A_CORRIDOR = "place: a corridor alike to others"  # `retrieved`'s name of a scan enclosed as in a corridor
 FLAT_SHIFT_SPACINGS = 3.0  # a tracked pose's fit is tested this many map spacings along the scan's main axis
 # (`MapLocalizer.flat`): on the training campuses (0.11 m spacings) tracked corridor scans stop up to 0.3 m
 # along the corridor
@@ -720,7 +721,12 @@ class MapLocalizer:
         if not results:  # nothing retrieved near enough to the map to align: the whole map from the identity
             results = [self.track(scan, np.eye(4), local=whole) or self._mapper.register(scan, self.map)]
         best = self.chosen(results)
-        if any(AS_WELL_FITTED in motion for motion in best.unconstrained):  # a corridor, and no guess
+        enclosure = self.place_index().enclosure(scan) if c.corridor_share > 0 else 0.0
+        if enclosure >= c.corridor_share > 0:  # a corridor: its look-alikes are not told apart by one scan
+            named = (f"{IN_A_CORRIDOR}: structure within {ENCLOSING_REACH:g} m in {enclosure:.0%} of directions, "
+                     "placed by the index alone")
+            best = replace(best, unconstrained=(*best.unconstrained, named))
+        if any(AS_WELL_FITTED in m or IN_A_CORRIDOR in m for m in best.unconstrained):  # a corridor, and no guess
             best = replace(best, confidence=below_rival(best.confidence, best.confidence))
         best.timings = {"retrieve": t1 - t0, "screen": t2 - t1, "refine": time.perf_counter() - t2,
                         "total": time.perf_counter() - t0}

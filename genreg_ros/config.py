@@ -363,12 +363,14 @@ MAP_OVERRIDES: dict[str, Any] = {**SCENE_OVERRIDES, "workers": 1, "map.enabled":
 # scans moved beyond GICP's reach and was searched by the index; rooms keep the last pose: at 30 Hz a hand-held
 # camera moves between frames about as much as two tracked poses differ by noise, so it changed little there);
 # a pose found without a guess published at 0.8 or more (relocalize_confidence: on the training worlds, right ones
-# at 0.53-0.65 or 0.87 and up, wrong ones at 0.50-0.76, five of them found while tracking was lost in a corridor)
+# at 0.53-0.65 or 0.87 and up, wrong ones at 0.50-0.76, five of them found while tracking was lost in a corridor);
+# a scan enclosed as in a corridor not placed confidently without a guess (corridor_share: the share of directions
+# with structure within 4 m was 0.00-0.37 for the training campuses' road scans, 0.53-0.85 for their corridor scans)
 LIDAR_MAP_OVERRIDES: dict[str, Any] = {**MAP_OVERRIDES, "map.localization.retrieve": 8,
                                        "map.localization.map_voxel": 0.2, "map.localization.threads": 1,
                                        "map.localization.verify_fitness": 0.8, "map.localization.unfit_iterations": 3,
                                        "map.localization.flat_fit": 0.92, "map.predict_motion": True,
-                                       "map.relocalize_confidence": 0.8}
+                                       "map.relocalize_confidence": 0.8, "map.localization.corridor_share": 0.45}
 PROFILES: dict[str, tuple[str, dict[str, Any]]] = {
     "genreg.yaml": (f"depth-camera and indoor scenes (the scene model {SCENE_MODEL})", SCENE_OVERRIDES),
     "genreg_map.yaml": (f"map mode: depth-camera scans localised in a prior map (the scene model {SCENE_MODEL})",

@@ -17,7 +17,9 @@ with depth 5 (SensorDataQoS), stamped 100 ms apart and sent at that pace, in fou
   misclick (with --misclick) standing at the drive's end, an `initialpose` 500 m off the map is sent (an RViz
            click in the wrong place) and the vehicle stands on until tracked twice after it
   kidnap   the robot carried to the start of the building's main corridor (a floor robot, 0.6 m high,
-           VLP-32-like), standing there until placed again and tracked twice
+           VLP-32-like); an operator gives its pose there (an `initialpose` 0.3 m and 5 deg off the truth: a click
+           in RViz), since a scan in a corridor is not placed without a guess (`corridor_share`), and it stands
+           until placed again and tracked twice
   walk     along the corridor at 1.5 m/s (0.15 m a scan), --walk-scans of them
 Every scan is cast (6 moving cars and people around it) and serialised before the node starts.
 
@@ -56,6 +58,7 @@ import numpy as np
 import open3d as o3d
 from geometry_msgs.msg import PoseWithCovarianceStamped
 from rclpy.serialization import serialize_message
+from scipy.spatial.transform import Rotation
 from std_msgs.msg import Header
 from tqdm import tqdm
 
@@ -74,6 +77,7 @@ from bench_lidar_map import (
 from bench_node import cpu_seconds, rss_mb
 
 from genreg_core.data import lidar_world as lw
+from genreg_core.geometry import make_transform
 from genreg_core.metrics import transform_errors
 from genreg_ros.config import CONFIG_DIR
 from genreg_ros.conversions import matrix_to_pose_msg
@@ -84,6 +88,7 @@ SENSOR_FRAME, MAP_FRAME = "velodyne", "map"
 PHASES = ("start", "drive", "misclick", "kidnap", "walk")
 STANDING = ("start", "misclick", "kidnap")  # phases that stand until placed and tracked twice
 MISCLICK_M = 500.0  # the misclick phase's initialpose: this far east of the vehicle, m
+OPERATOR_OFF = (0.3, 5.0)  # the kidnap phase's initialpose: this far (m, to the robot's left) and turned (deg)
 STAND_SCANS = 5  # revolutions cast at a standing place (movers differ), sent in turn: the node, which takes the
 # newest scan when it is free, does not take the same one every time
 NODE_PARAMS = {"diagnostics.period": "1.0"}  # config/genreg_lidar_map.yaml otherwise
@@ -285,6 +290,14 @@ def misclick(truth: np.ndarray) -> PoseWithCovarianceStamped:
     return matrix_to_pose_msg(T, Header(frame_id=MAP_FRAME), None)
 
 
+def operator_pose(truth: np.ndarray) -> PoseWithCovarianceStamped:
+    """An `initialpose` in the map frame `OPERATOR_OFF` from the robot's true pose (to its left, turned
+    counter-clockwise), as an operator's click in RViz gives it."""
+    metres, degrees = OPERATOR_OFF
+    T = truth @ make_transform(Rotation.from_euler("z", degrees, degrees=True).as_matrix(), np.array([0.0, metres, 0.0]))
+    return matrix_to_pose_msg(T, Header(frame_id=MAP_FRAME), None)
+
+
 def wait_ready(client: Client, node: NodeProcess, timeout: float) -> float:
     """Seconds until the node's first diagnostics and a matched scan publisher (its map prepared)."""
     t0 = time.monotonic()
@@ -329,9 +342,9 @@ def main(argv: list[str] | None = None) -> int:
         t0, rss_laps = time.monotonic(), []
         for _ in range(args.laps):
             for phase in phases:
-                if phase == "misclick":  # after the drive's last answer, so that a scan of this phase takes it
+                if phase in ("misclick", "kidnap"):  # after the last answer, so that a scan of this phase takes it
                     stream.settle(5.0)
-                    initialpose.publish(misclick(poses[phase][0]))
+                    initialpose.publish((misclick if phase == "misclick" else operator_pose)(poses[phase][0]))
                     time.sleep(0.2)
                 if phase in STANDING:
                     stream.stand(raws[phase], poses[phase], phase, args.stand_timeout)

@@ -318,14 +318,66 @@ def test_a_scan_no_retrieved_place_fits_is_not_slid_and_not_confident(street: tu
         assert re < PLACED_RE_DEG and te < PLACED_TE_M and result.confidence >= 0.5, (re, te, result.confidence)
 
 
-def test_a_track_as_well_fitted_along_a_uniform_corridor_names_it_and_a_street_does_not(
-        street: tuple[Scene, np.ndarray]) -> None:
+def corridor_scene() -> Scene:
+    """A uniform corridor along x: walls 1.5 m either side of the line y = 0, 3 m high, a 1 m doorway every 10 m,
+    and a ceiling."""
     corridor = Scene("corridor")
     corridor.add_plane((0, 0, 0), (0, 0, 1), 0.3)
-    for side in (1, -1):  # walls 1.5 m either side of the line y = 0, 3 m high, a 1 m doorway every 10 m
+    for side in (1, -1):
         for x in np.arange(-150.0, 150.0, 10.0):
             corridor.add_box((x + 4.5, side * 1.6, 1.5), (9.0, 0.2, 3.0), 0.0, 0.6)
     corridor.add_box((0.0, 0.0, 3.1), (300.0, 3.4, 0.2), 0.0, 0.6)  # the ceiling
+    return corridor
+
+
+@given(st.floats(0.8, 3.5), st.floats(-np.pi, np.pi))
+def test_enclosure_is_the_share_of_directions_with_a_wall_within_reach(half_width: float, heading: float) -> None:
+    """Walls either side of a straight corridor `half_width` m from the sensor, at any heading: a direction at
+    angle a from the corridor meets a wall at half_width / |sin a|, within 4 m when |sin a| > half_width / 4,
+    so the share is 1 - 2 arcsin(half_width / 4) / pi, up to a partly covered sector (of 60) at each of the four
+    ends of the walls' reach (a sector counts when any of its points is within reach); a floor alone: 0."""
+    x, z = np.meshgrid(np.arange(-30.0, 30.0, 0.05), np.arange(0.5, 1.6, 0.25))
+    walls = np.concatenate([np.c_[x.ravel(), np.full(x.size, side * half_width), z.ravel()] for side in (1, -1)])
+    gx, gy = np.meshgrid(np.arange(-25.0, 25.0, 0.25), np.arange(-25.0, 25.0, 0.25))
+    ground = np.c_[gx.ravel(), gy.ravel(), np.zeros(gx.size)] - [0.0, 0.0, 0.6]  # the sensor 0.6 m up
+    walls[:, 2] -= 0.6
+    c, s = np.cos(heading), np.sin(heading)
+    turn = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+    index = PlaceIndex(IndexGeometry(), np.zeros((0, 3)), np.zeros((31, 0, 15), np.complex64))
+    expected = 1.0 - 2.0 * np.arcsin(half_width / 4.0) / np.pi
+    assert expected - 1 / 60 <= index.enclosure(np.concatenate([walls, ground]) @ turn.T) <= expected + 4 / 60
+    assert index.enclosure(ground @ turn.T) == 0.0
+
+
+def test_a_corridor_scan_placed_without_a_guess_is_named_and_held_and_a_tracked_one_is_kept(
+        street: tuple[Scene, np.ndarray]) -> None:
+    """With `corridor_share`, a scan in a corridor localised without a guess is named (a corridor alike to
+    others) and its confidence held at 1 - its own; from a guess (tracking) it is not named; a street scan is
+    not named either way."""
+    corridor = corridor_scene()
+    config = LocalizationConfig(retrieve=8, map_voxel=0.2, corridor_share=0.45)
+    rng = np.random.default_rng(17)
+    for scene, map_xyz, enclosed in ((corridor, fused_map(corridor, np.arange(-60.0, 60.1, 4.0)), True),
+                                     (street[0], street[1], False)):
+        loc = MapLocalizer(map_xyz, config=config)
+        T = sensor_pose(rng.uniform(-20, 20), rng.uniform(-0.5, 0.5), 1.8, rng.uniform(-np.pi, np.pi))
+        scan = lidar_scan(scene, T, rng, SENSOR).points
+        found = loc.localize(scan)
+        named = [u for u in found.unconstrained if u.startswith("place: a corridor")]
+        assert bool(named) == enclosed, (scene.name, found.unconstrained)
+        if enclosed:
+            assert found.confidence <= 0.5, found.confidence
+            loc.config = replace(config, corridor_share=0.0)  # the same scan without the rule: not held
+            free = loc.localize(scan)
+            assert found.confidence == pytest.approx(min(free.confidence, 1.0 - free.confidence))
+            loc.config = config
+        tracked = loc.localize(scan, initial_guess=T)
+        assert not [u for u in tracked.unconstrained if u.startswith("place: a corridor")], tracked.unconstrained
+
+
+def test_a_track_as_well_fitted_along_a_uniform_corridor_names_it_and_a_street_does_not(
+        street: tuple[Scene, np.ndarray]) -> None:
+    corridor = corridor_scene()
     config = LocalizationConfig(retrieve=8, map_voxel=0.2, flat_fit=0.92)
     rng = np.random.default_rng(13)
     for scene, map_xyz, flat in ((corridor, fused_map(corridor, np.arange(-60.0, 60.1, 4.0)), True),
