@@ -483,9 +483,23 @@ class MapLocalizer:
             searched = self.judged(self.refined(scan, guess, apply_transform(guess, centroid[None])[0], radius), scan)
             return searched if tracked is None else max(tracked, searched, key=lambda r: r.confidence)
         if indexed:
-            return self.retrieved(scan)
+            return self.unguided(self.retrieved(scan), scan)
         assert geometry is not None
         return self.chosen(self.searched(scan, geometry))
+
+    def unguided(self, result: RegistrationResult, scan: np.ndarray) -> RegistrationResult:
+        """The place index's pose of a scan localised without any guess, held at 1 - its confidence (at most 0.5)
+        and named when the scan is enclosed as in a corridor (`PlaceIndex.enclosure` at least `corridor_share`):
+        one scan does not tell a building's look-alike corridors apart. (An unsure track's check by the index
+        keeps its confidence: the robot's last pose is the rival that bounds it.)"""
+        share = self.config.corridor_share
+        enclosure = self.place_index().enclosure(scan) if share > 0 else 0.0
+        if share <= 0 or enclosure < share:
+            return result
+        named = (f"{IN_A_CORRIDOR}: structure within {ENCLOSING_REACH:g} m in {enclosure:.0%} of directions, "
+                 "placed without a guess")
+        return replace(result, unconstrained=(*result.unconstrained, named),
+                       confidence=below_rival(result.confidence, result.confidence))
 
     def within_reach(self, T: np.ndarray, guess: np.ndarray) -> bool:
         """Whether the pose T_map_scan `T` lies within tracking's reach of `guess`: GICP's correspondence
@@ -721,12 +735,7 @@ class MapLocalizer:
         if not results:  # nothing retrieved near enough to the map to align: the whole map from the identity
             results = [self.track(scan, np.eye(4), local=whole) or self._mapper.register(scan, self.map)]
         best = self.chosen(results)
-        enclosure = self.place_index().enclosure(scan) if c.corridor_share > 0 else 0.0
-        if enclosure >= c.corridor_share > 0:  # a corridor: its look-alikes are not told apart by one scan
-            named = (f"{IN_A_CORRIDOR}: structure within {ENCLOSING_REACH:g} m in {enclosure:.0%} of directions, "
-                     "placed by the index alone")
-            best = replace(best, unconstrained=(*best.unconstrained, named))
-        if any(AS_WELL_FITTED in m or IN_A_CORRIDOR in m for m in best.unconstrained):  # a corridor, and no guess
+        if any(AS_WELL_FITTED in motion for motion in best.unconstrained):  # a corridor, and no guess
             best = replace(best, confidence=below_rival(best.confidence, best.confidence))
         best.timings = {"retrieve": t1 - t0, "screen": t2 - t1, "refine": time.perf_counter() - t2,
                         "total": time.perf_counter() - t0}
