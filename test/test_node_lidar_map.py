@@ -24,6 +24,7 @@ import dataclasses
 import re
 import time
 from collections.abc import Callable
+from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -150,6 +151,8 @@ class Stream:
     def __init__(self, h, pub, statuses: list[DiagnosticArray], t0: float = 1000.0) -> None:
         self.h, self.pub, self.results, self.t, self.sent = h, pub, statuses, t0, []
         self.next_at = time.monotonic()
+        self.children: set[str] = set()  # the child frames of the transforms published (`lidar_node`)
+        self.run: Run | None = None  # what the node answered, once it stopped (`lidar_node`)
 
     def publish(self, scan: Scan, phase: str) -> None:
         time.sleep(max(0.0, self.next_at - time.monotonic()))
@@ -195,28 +198,47 @@ class Stream:
             assert time.monotonic() < deadline, "a registration_status missing for a scan the node received"
 
 
+@contextmanager
+def lidar_node(ros_namespace: str, name: str, params: dict, tmp_path_factory, cast: Callable[[], dict]):
+    """register_node in its own process with config/genreg_lidar_map.yaml and `params`, a best-effort scan
+    publisher and a deep registration_status subscription (every status of a burst: those of the scans
+    superseded during one slow localisation come at once); `cast()` makes the scans while the node starts.
+    Yields (Stream, scans) once the node is up and subscribed; `stream.run` (after the block) is what it answered."""
+    held: dict = {}
+
+    def scan_publisher(h):
+        held["pub"] = h.helper.create_publisher(PointCloud2, "source_cloud", qos_profile_sensor_data)
+        h.helper.create_subscription(DiagnosticArray, "registration_status", h._rec(held.setdefault("statuses", [])),
+                                     QoSProfile(depth=STATUS_DEPTH, reliability=ReliabilityPolicy.RELIABLE))
+
+    log = tmp_path_factory.mktemp(name) / "node.log"
+    with node_process(f"{ros_namespace}/{name}", log, params, before=scan_publisher,
+                      params_file=CONFIG_DIR / "genreg_lidar_map.yaml", ready=False) as (h, proc, log_path):
+        scans = cast()
+        h.wait(lambda: h.diagnostics or proc.poll() is not None, 60.0, "the node's diagnostics (start-up)")
+        assert proc.poll() is None, log_path.read_text()
+        wait_subscribed(h, held["pub"])
+        stream = Stream(h, held["pub"], held["statuses"])
+        yield stream, scans
+        stream.settle()
+        time.sleep(0.5)  # the diagnostics after the last answer
+        diagnostics = diag_values(h.status(after=time.monotonic()))
+        with h.lock:
+            poses = {(m.header.stamp.sec, m.header.stamp.nanosec): m for m in h.poses}
+            aligned = {(m.header.stamp.sec, m.header.stamp.nanosec): m for m in h.aligned}
+            stream.children = {m.child_frame_id for m in h.transforms}
+        statuses = stream.statuses()
+        messages = len(held["statuses"])
+    stream.run = Run(stream.sent, messages, statuses, poses, aligned, diagnostics, log_path.read_text())
+
+
 @pytest.fixture(scope="module")
 def run(ros_namespace, campus, tmp_path_factory) -> Run:
     """The node on the campus map and the whole stream, once; what it answered. The scans are cast while the
     node starts."""
     world, map_path = campus
-    held = {}
-
-    def scan_publisher(h):
-        held["pub"] = h.helper.create_publisher(PointCloud2, "source_cloud", qos_profile_sensor_data)
-        # every status of a burst (those of the scans superseded during one slow localisation come at once)
-        h.helper.create_subscription(DiagnosticArray, "registration_status", h._rec(held.setdefault("statuses", [])),
-                                     QoSProfile(depth=STATUS_DEPTH, reliability=ReliabilityPolicy.RELIABLE))
-
     params = {**PARAMS, "target_file": str(map_path), "target_frame": MAP_FRAME_ID}
-    log = tmp_path_factory.mktemp("lidar_node") / "node.log"
-    with node_process(f"{ros_namespace}/lidar_map", log, params, before=scan_publisher,
-                      params_file=CONFIG_DIR / "genreg_lidar_map.yaml", ready=False) as (h, proc, log_path):
-        scans = phase_scans(world)
-        h.wait(lambda: h.diagnostics or proc.poll() is not None, 60.0, "the node's diagnostics (start-up)")
-        assert proc.poll() is None, log_path.read_text()
-        wait_subscribed(h, held["pub"])
-        stream = Stream(h, held["pub"], held["statuses"])
+    with lidar_node(ros_namespace, "lidar_map", params, tmp_path_factory, lambda: phase_scans(world)) as (stream, scans):
         # standing at the start until placed without a guess and tracked twice (the map's first use)
         stream.stand(scans["start"], "start", lambda: stream.registered("start", "tracking") >= 2, 60.0)
         stream.drive(scans["drive"], "drive")
@@ -224,20 +246,12 @@ def run(ros_namespace, campus, tmp_path_factory) -> Run:
         stream.stand(scans["kidnap"], "kidnap", lambda: stream.registered("kidnap", "tracking") >= 2, 30.0)
         stream.drive(scans["drive_on"], "drive_on")
         stream.settle()
-        response = h.call(Trigger, "relocalize")
+        response = stream.h.call(Trigger, "relocalize")
         assert response.success, response.message
         terrace = lambda: sum("localization" in stream.statuses().get(s.key, {}) for s in stream.sent
                               if s.phase == "terrace")
         stream.stand(scans["terrace"], "terrace", lambda: terrace() >= 2, 20.0)
-        stream.settle()
-        time.sleep(0.5)  # the diagnostics after the last answer
-        diagnostics = diag_values(h.status(after=time.monotonic()))
-        with h.lock:
-            poses = {(m.header.stamp.sec, m.header.stamp.nanosec): m for m in h.poses}
-            aligned = {(m.header.stamp.sec, m.header.stamp.nanosec): m for m in h.aligned}
-        statuses = stream.statuses()
-        messages = len(held["statuses"])
-    return Run(stream.sent, messages, statuses, poses, aligned, diagnostics, log_path.read_text())
+    return stream.run
 
 
 def answered(run: Run, phase: str) -> list[tuple[Sent, dict[str, str]]]:
@@ -413,17 +427,9 @@ def tilted(ros_namespace, campus, tmp_path_factory) -> Run:
     pitched down 20 deg and rolled 4 deg); the vehicle stands on the southern street until placed and drives
     on. The truth of each scan is the base's pose (on the ground); the scans are cast from the sensor's."""
     world, map_path = campus
-    held = {}
-
-    def scan_publisher(h):
-        held["pub"] = h.helper.create_publisher(PointCloud2, "source_cloud", qos_profile_sensor_data)
-        h.helper.create_subscription(DiagnosticArray, "registration_status", h._rec(held.setdefault("statuses", [])),
-                                     QoSProfile(depth=STATUS_DEPTH, reliability=ReliabilityPolicy.RELIABLE))
-
     quaternion = Rotation.from_matrix(MOUNT[:3, :3]).as_quat()
     params = {**PARAMS, "target_file": str(map_path), "target_frame": MAP_FRAME_ID, "base_frame": BASE,
               "base_T_source": "[" + ", ".join(f"{v:.9f}" for v in (*MOUNT[:3, 3], *quaternion)) + "]"}
-    log = tmp_path_factory.mktemp("lidar_node_tilted") / "node.log"
     south = street_poses(world)["south"]
 
     def on_ground(x: float) -> np.ndarray:  # T_map_base: the base on the road under where the level sensor was
@@ -432,27 +438,16 @@ def tilted(ros_namespace, campus, tmp_path_factory) -> Run:
         return T
 
     bases = {"start": [on_ground(6.0)] * 2, "drive": [on_ground(7.0 + SPEED * k) for k in range(6)]}
-    with node_process(f"{ros_namespace}/lidar_tilted", log, params, before=scan_publisher,
-                      params_file=CONFIG_DIR / "genreg_lidar_map.yaml", ready=False) as (h, proc, log_path):
-        scans = {phase: [Scan(driver_records(world, T @ MOUNT, seed=500 + 10 * n + k), T) for k, T in enumerate(Ts)]
-                 for n, (phase, Ts) in enumerate(bases.items())}
-        h.wait(lambda: h.diagnostics or proc.poll() is not None, 60.0, "the node's diagnostics (start-up)")
-        assert proc.poll() is None, log_path.read_text()
-        wait_subscribed(h, held["pub"])
-        stream = Stream(h, held["pub"], held["statuses"])
+
+    def cast() -> dict[str, list[Scan]]:
+        return {phase: [Scan(driver_records(world, T @ MOUNT, seed=500 + 10 * n + k), T) for k, T in enumerate(Ts)]
+                for n, (phase, Ts) in enumerate(bases.items())}
+
+    with lidar_node(ros_namespace, "lidar_tilted", params, tmp_path_factory, cast) as (stream, scans):
         stream.stand(scans["start"], "start", lambda: stream.registered("start", "tracking") >= 2, 60.0)
         stream.drive(scans["drive"], "drive")
-        stream.settle()
-        time.sleep(0.5)
-        diagnostics = diag_values(h.status(after=time.monotonic()))
-        with h.lock:
-            poses = {(m.header.stamp.sec, m.header.stamp.nanosec): m for m in h.poses}
-            aligned = {(m.header.stamp.sec, m.header.stamp.nanosec): m for m in h.aligned}
-            children = {m.child_frame_id for m in h.transforms}
-        statuses = stream.statuses()
-        messages = len(held["statuses"])
-    assert children == {BASE}, children
-    return Run(stream.sent, messages, statuses, poses, aligned, diagnostics, log_path.read_text())
+    assert stream.children == {BASE}, stream.children
+    return stream.run
 
 
 def test_a_tilted_sensor_localises_its_base(tilted):

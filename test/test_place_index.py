@@ -318,16 +318,22 @@ def test_a_scan_no_retrieved_place_fits_is_not_slid_and_not_confident(street: tu
         assert re < PLACED_RE_DEG and te < PLACED_TE_M and result.confidence >= 0.5, (re, te, result.confidence)
 
 
-def corridor_scene() -> Scene:
-    """A uniform corridor along x: walls 1.5 m either side of the line y = 0, 3 m high, a 1 m doorway every 10 m,
-    and a ceiling."""
+def corridor_and_street(street: tuple[Scene, np.ndarray]) -> list[tuple[Scene, np.ndarray, bool]]:
+    """(scene, its map, whether it is a corridor): a uniform corridor along x (walls 1.5 m either side of the line
+    y = 0, 3 m high, a 1 m doorway every 10 m, a ceiling), and the street."""
     corridor = Scene("corridor")
     corridor.add_plane((0, 0, 0), (0, 0, 1), 0.3)
     for side in (1, -1):
         for x in np.arange(-150.0, 150.0, 10.0):
             corridor.add_box((x + 4.5, side * 1.6, 1.5), (9.0, 0.2, 3.0), 0.0, 0.6)
     corridor.add_box((0.0, 0.0, 3.1), (300.0, 3.4, 0.2), 0.0, 0.6)  # the ceiling
-    return corridor
+    return [(corridor, fused_map(corridor, np.arange(-60.0, 60.1, 4.0)), True), (street[0], street[1], False)]
+
+
+def scan_along(scene: Scene, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+    """A scan of `scene` (and its T_world_sensor) 1.8 m up near the line y = 0, at any heading."""
+    T = sensor_pose(rng.uniform(-20, 20), rng.uniform(-0.5, 0.5), 1.8, rng.uniform(-np.pi, np.pi))
+    return T, lidar_scan(scene, T, rng, SENSOR).points
 
 
 @given(st.floats(0.8, 3.5), st.floats(-np.pi, np.pi))
@@ -354,14 +360,11 @@ def test_a_corridor_scan_placed_without_a_guess_is_named_and_held_and_a_tracked_
     """With `corridor_share`, a scan in a corridor localised without a guess is named (a corridor alike to
     others) and its confidence held at 1 - its own; from a guess (tracking) it is not named; a street scan is
     not named either way."""
-    corridor = corridor_scene()
     config = LocalizationConfig(retrieve=8, map_voxel=0.2, corridor_share=0.45)
     rng = np.random.default_rng(17)
-    for scene, map_xyz, enclosed in ((corridor, fused_map(corridor, np.arange(-60.0, 60.1, 4.0)), True),
-                                     (street[0], street[1], False)):
+    for scene, map_xyz, enclosed in corridor_and_street(street):
         loc = MapLocalizer(map_xyz, config=config)
-        T = sensor_pose(rng.uniform(-20, 20), rng.uniform(-0.5, 0.5), 1.8, rng.uniform(-np.pi, np.pi))
-        scan = lidar_scan(scene, T, rng, SENSOR).points
+        T, scan = scan_along(scene, rng)
         found = loc.localize(scan)
         named = [u for u in found.unconstrained if u.startswith("place: a corridor")]
         assert bool(named) == enclosed, (scene.name, found.unconstrained)
@@ -377,14 +380,11 @@ def test_a_corridor_scan_placed_without_a_guess_is_named_and_held_and_a_tracked_
 
 def test_a_track_as_well_fitted_along_a_uniform_corridor_names_it_and_a_street_does_not(
         street: tuple[Scene, np.ndarray]) -> None:
-    corridor = corridor_scene()
     config = LocalizationConfig(retrieve=8, map_voxel=0.2, flat_fit=0.92)
     rng = np.random.default_rng(13)
-    for scene, map_xyz, flat in ((corridor, fused_map(corridor, np.arange(-60.0, 60.1, 4.0)), True),
-                                 (street[0], street[1], False)):
+    for scene, map_xyz, flat in corridor_and_street(street):
         loc = MapLocalizer(map_xyz, config=config)
-        T = sensor_pose(rng.uniform(-20, 20), rng.uniform(-0.5, 0.5), 1.8, rng.uniform(-np.pi, np.pi))
-        scan = lidar_scan(scene, T, rng, SENSOR).points
+        T, scan = scan_along(scene, rng)
         result = loc.localize(scan, initial_guess=T)
         named = [u for u in result.unconstrained if "as well fitted" in u]
         assert bool(named) == flat, (scene.name, result.unconstrained)
