@@ -238,7 +238,7 @@ class PlaceIndex:
 
     def enclosure(self, scan_xyz: np.ndarray) -> float:
         """The share of directions (the descriptor's sectors) in which structure (`free_below` to `band` above the
-        scan's ground) stands within `ENCLOSING_REACH` m of the sensor (scan frame, z up): 0.5-0.85 in the
+        scan's ground) stands within `ENCLOSING_REACH` m of the sensor (scan frame, z up): 0.53-0.85 in the
         corridors of the training campuses, at most 0.37 on their roads."""
         g = self.geometry
         _, ground = self.describe_scan(scan_xyz)
