@@ -483,21 +483,20 @@ class MapLocalizer:
             searched = self.judged(self.refined(scan, guess, apply_transform(guess, centroid[None])[0], radius), scan)
             return searched if tracked is None else max(tracked, searched, key=lambda r: r.confidence)
         if indexed:
-            return self.unguided(self.retrieved(scan), scan)
+            return self.retrieved(scan)
         assert geometry is not None
         return self.chosen(self.searched(scan, geometry))
 
-    def unguided(self, result: RegistrationResult, scan: np.ndarray) -> RegistrationResult:
-        """The place index's pose of a scan localised without any guess, held at 1 - its confidence (at most 0.5)
-        and named when the scan is enclosed as in a corridor (`PlaceIndex.enclosure` at least `corridor_share`):
-        one scan does not tell a building's look-alike corridors apart. (An unsure track's check by the index
-        keeps its confidence: the robot's last pose is the rival that bounds it.)"""
+    def in_a_corridor(self, result: RegistrationResult, scan: np.ndarray) -> RegistrationResult:
+        """The place index's pose of a scan, held at 1 - its confidence (at most 0.5) and named when the scan is
+        enclosed as in a corridor (`PlaceIndex.enclosure` at least `corridor_share`): one scan does not tell a
+        building's look-alike corridors apart, whether it comes without a guess or as an unsure track's check."""
         share = self.config.corridor_share
         enclosure = self.place_index().enclosure(scan) if share > 0 else 0.0
         if share <= 0 or enclosure < share:
             return result
         named = (f"{IN_A_CORRIDOR}: structure within {ENCLOSING_REACH:g} m in {enclosure:.0%} of directions, "
-                 "placed without a guess")
+                 "placed by the place index")
         return replace(result, unconstrained=(*result.unconstrained, named),
                        confidence=below_rival(result.confidence, result.confidence))
 
@@ -734,8 +733,8 @@ class MapLocalizer:
         results = [r for k in kept if (r := self.track(scan, coarse[k], local=whole, iterations=iterations)) is not None]
         if not results:  # nothing retrieved near enough to the map to align: the whole map from the identity
             results = [self.track(scan, np.eye(4), local=whole) or self._mapper.register(scan, self.map)]
-        best = self.chosen(results)
-        if any(AS_WELL_FITTED in motion for motion in best.unconstrained):  # a corridor, and no guess
+        best = self.in_a_corridor(self.chosen(results), scan)
+        if any(AS_WELL_FITTED in motion for motion in best.unconstrained):  # a uniform corridor, and no guess
             best = replace(best, confidence=below_rival(best.confidence, best.confidence))
         best.timings = {"retrieve": t1 - t0, "screen": t2 - t1, "refine": time.perf_counter() - t2,
                         "total": time.perf_counter() - t0}
