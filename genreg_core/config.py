@@ -397,12 +397,13 @@ class LocalizationConfig:
                               "corridor) is named unconstrained along it, its covariance widened by that shift; "
                               "found without a guess (the place index), its confidence is also held at 1 - its "
                               "own (0: off).", low=0.0, high=10.0)
-    corridor_share: float = setting(0.0, "A scan placed by the place index (without a guess, or checking an unsure "
-                                    "track) that has structure (0.3 m to index_band above its ground) within 4 m of "
-                                    "the sensor in at least this share of directions is in a corridor, which one "
-                                    "scan cannot tell from look-alike corridors: the index's pose is named so and "
-                                    "its confidence held at 1 - its own (at most 0.5); a confident track is kept "
-                                    "(0: off).", low=0.0, high=1.0)
+    corridor_share: float = setting(0.0, "A scan that has structure (0.3 m to index_band above its ground) within "
+                                    "4 m of the sensor in at least this share of directions is in a corridor, which "
+                                    "one scan cannot tell from look-alike corridors: a pose searched for there (the "
+                                    "place index's, without a guess or checking an unsure track; a track found "
+                                    "beyond tracking's reach of its guess) is named so and its confidence held at "
+                                    "1 - its own (at most 0.5); a confident track within reach is kept (0: off).",
+                                    low=0.0, high=1.0)
     map_threads: int = setting(0, "Threads that prepare the map for the place index's GICP and VGICP on load "
                                "(its k-d trees and covariances: the same result on any number); 0: "
                                "OMP_NUM_THREADS, else 1.", low=0, high=256)

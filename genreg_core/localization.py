@@ -477,6 +477,9 @@ class MapLocalizer:
             if tracked is not None and tracked.confidence >= c.track_below and not far:
                 return tracked
             if indexed:  # an unsure track: the place index's answer, bounded by the track's if they differ
+                if tracked is not None and far:  # not tracked from its guess but found away from it: in a
+                    # corridor, a look-alike place as the index's answer may be
+                    tracked = self.in_a_corridor(tracked, scan, "found beyond tracking's reach of its guess")
                 return self.chosen([self.retrieved(scan), *([tracked] if tracked else [])])
             assert geometry is not None
             centroid, radius, _ = geometry
@@ -487,16 +490,17 @@ class MapLocalizer:
         assert geometry is not None
         return self.chosen(self.searched(scan, geometry))
 
-    def in_a_corridor(self, result: RegistrationResult, scan: np.ndarray) -> RegistrationResult:
-        """The place index's pose of a scan, held at 1 - its confidence (at most 0.5) and named when the scan is
+    def in_a_corridor(self, result: RegistrationResult, scan: np.ndarray, how: str = "placed by the place index"
+                      ) -> RegistrationResult:
+        """A pose searched for (the place index's, without a guess or checking an unsure track; or a track found
+        beyond reach of its guess: `how`), held at 1 - its confidence (at most 0.5) and named when the scan is
         enclosed as in a corridor (`PlaceIndex.enclosure` at least `corridor_share`): one scan does not tell a
-        building's look-alike corridors apart, whether it comes without a guess or as an unsure track's check."""
+        building's look-alike corridors apart."""
         share = self.config.corridor_share
         enclosure = self.place_index().enclosure(scan) if share > 0 else 0.0
         if share <= 0 or enclosure < share:
             return result
-        named = (f"{IN_A_CORRIDOR}: structure within {ENCLOSING_REACH:g} m in {enclosure:.0%} of directions, "
-                 "placed by the place index")
+        named = f"{IN_A_CORRIDOR}: structure within {ENCLOSING_REACH:g} m in {enclosure:.0%} of directions, {how}"
         return replace(result, unconstrained=(*result.unconstrained, named),
                        confidence=below_rival(result.confidence, result.confidence))
 

@@ -376,6 +376,14 @@ def test_a_corridor_scan_placed_without_a_guess_is_named_and_held_and_a_tracked_
             loc.config = config
         tracked = loc.localize(scan, initial_guess=T)
         assert not [u for u in tracked.unconstrained if u.startswith("place: a corridor")], tracked.unconstrained
+        # a guess to the side, just beyond tracking's reach of the true pose: in the corridor whatever is found
+        # there is searched for (the index's answer, or a track that moved beyond reach) and held
+        side = T.copy()
+        side[:3, 3] += (loc.config.track_distance * loc.voxel_size + 0.3) * T[:3, 1]
+        assert not loc.within_reach(T, side)
+        moved = loc.localize(scan, initial_guess=side)
+        if enclosed:
+            assert moved.confidence <= 0.5, (moved.confidence, moved.unconstrained)
 
 
 def test_a_track_as_well_fitted_along_a_uniform_corridor_names_it_and_a_street_does_not(
