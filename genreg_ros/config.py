@@ -172,8 +172,9 @@ class MapParams:
                                            low=0.0, high=1.0)
     predict_motion: bool = setting(False, "Tracking starts each scan from the last accepted pose moved on at the "
                                    "velocity of the last two (constant velocity, scaled to the scans' stamps, at "
-                                   "most 5 of their intervals ahead; the LiDAR map profile: on); false: from the "
-                                   "last accepted pose.")
+                                   "most 5 of their intervals ahead; the LiDAR map profile: on); the scan after a "
+                                   "pose placed by a search (jumped) is placed again without a guess, and the two "
+                                   "give the velocity; false: from the last accepted pose.")
     localization: LocalizationConfig = setting(LocalizationConfig(), "MapLocalizer's settings (the core's "
                                                "defaults), read when the node starts.", start_up=True)
 

@@ -10,8 +10,9 @@ which the next scan gets:
   below `min_confidence`, the fitness below `min_fitness`, or it failed): the next scan is localised
   without a guess, as in `global`; with the place index (LiDAR maps) from the last accepted pose, whose
   unsure track is searched for in the whole map as well (`scan_start`'s `keep`).
-A pose found while no pose is known (global and lost) is published only at `map.relocalize_confidence`
-(`policy.judge`'s `relocalized`).
+A pose found while no pose is known (global and lost), or placed again without a guess (in tracking, the scan
+after a placement: `genreg_ros.tracking`), is published only at `map.relocalize_confidence` (`policy.judge`'s
+`relocalized`).
 A guess from a topic (`initialpose`, `initial_guess`) is used in every state (`genreg_ros.tracking`).
 A hit in any state leads to `tracking`; misses while `global` or `tracking` count towards `lost`.
 
@@ -97,7 +98,8 @@ class Placement:
     """How a scan's pose stands to the start it was localised from (`placement`)."""
 
     left: bool  # beyond tracking's reach of its start: found elsewhere, by a search (`motion_continues`)
-    relocalized: bool  # found while no pose was known, without a start or having left it (`policy.judge`)
+    relocalized: bool  # found while no pose was known, without a start or having left it, or placed without a
+    # guess again to learn the motion (`Tracker.start`): judged as a relocalisation (`policy.judge`)
     jumped: bool  # not tracked from its start: it had none, or left it (registration_status `jumped`)
 
 
@@ -106,7 +108,7 @@ def placement(before: Step, start: Start, reached: bool) -> Placement:
     tracking's reach of `start.T` (`MapLocalizer.within_reach`; not read without a start)."""
     left = start.T is not None and not reached
     jumped = start.T is None or left
-    return Placement(left, before.mode == GLOBAL and jumped, jumped)
+    return Placement(left, jumped and (before.mode == GLOBAL or start.T is None), jumped)
 
 
 def scan_start(step: Step, start: Start, keep: bool = False) -> tuple[Step, Start]:

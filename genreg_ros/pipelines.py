@@ -241,7 +241,7 @@ class Pipeline(ABC):
             ctx.report.warn("low_confidence", f"published a low-confidence result: confidence {result.confidence:.2f} "
                             f"< warn_confidence {c.warn_confidence} (fitness {result.fitness:.2f})")
         ctx.tracker.record(result.transformation, pair.source_stamp, generation, time.monotonic(),
-                           continues=motion_continues(start.origin, jumped))
+                           continues=motion_continues(start.origin, jumped), placed=verdict.jumped)
         return Publication(status, Outputs(header, prepared.source, pair.source.frame, result, latency,
                                            prepared.decode_s, figures(prepared, result, *times),
                                            verdict.low_confidence, registered_decoded, prepared.base_T_source))

@@ -8,7 +8,11 @@ a pair's registration (`Tracker.start`) is, in this order of preference:
 - the last result (use_last_result_as_guess), recorded only for pairs taken since the last reset and never
   replaced by the result of an older pair (several workers finish out of order); given the pair's source
   stamp (map mode, `map.predict_motion`), moved on at the velocity of the last two results (origin
-  `predicted`, `Tracker.predicted`);
+  `predicted`, `Tracker.predicted`); a pose placed by a search (found without a guess, or beyond tracking's
+  reach of its start: a jump) has no velocity yet, so the pair after it is placed without a guess again
+  (once; origin `none`) and the two placements give the velocity: a vehicle placed while it moves is not
+  tracked from where it was a scan ago, where a road or a corridor may hold the track short of its place
+  with nothing to tell (`Tracker.start`);
 - the initial_guess parameter;
 - none.
 `reset` forgets the topic guess and the last result and starts a new generation: a result of a pair taken
@@ -73,6 +77,8 @@ class Tracker:
         self._last_time = -np.inf
         self._last_stamp = -1  # source stamp (ns) of the last result
         self._previous: tuple[np.ndarray, int] | None = None  # the result before it and its stamp
+        self._placed = False  # the last result was placed by a search, no velocity known
+        self._again = False  # ... and a pair has been started to place it again
         self._generation = 0
 
     @property
@@ -111,7 +117,9 @@ class Tracker:
         """The start of a pair mapping `source_frame` into `target_frame` under `config`
         (initial_guess_timeout, use_last_result_as_guess, initial_guess). `tracking` overrides
         use_last_result_as_guess; `parameter` False leaves the initial_guess parameter out (map mode);
-        `stamp`: the pair's source stamp (ns), to move the last result on to it (`predicted`; None: as kept)."""
+        `stamp`: the pair's source stamp (ns), to move the last result on to it (`predicted`; None: as kept); with
+        it, the first pair after a pose placed by a search (`record`'s `placed`: no velocity) is placed again,
+        without a guess."""
         with self._lock:
             g, last_T, last_time = self._guess, self._last_T, self._last_time
         discarded = note = ""
@@ -130,6 +138,8 @@ class Tracker:
             with self._lock:
                 if self._guess is g:  # not replaced meanwhile
                     self._guess = None
+        if tracking and last_T is not None and stamp is not None and self._place_again():
+            return Start(None, "none", discarded, note)
         if tracking and last_T is not None:
             ahead = None if stamp is None else self.predicted(stamp)
             if ahead is not None:
@@ -138,18 +148,33 @@ class Tracker:
         T = config.initial_guess_matrix() if parameter else None
         return Start(T, "none" if T is None else "parameter", discarded, note)
 
-    def record(self, T: np.ndarray, source_stamp: int, generation: int, now: float, continues: bool = True) -> bool:
+    def _place_again(self) -> bool:
+        """Whether the last result was placed by a search (no velocity yet) and no pair has been started to
+        place it again since; if so, this pair is that one."""
+        with self._lock:
+            again = self._placed and not self._again
+            self._again = self._again or again
+            return again
+
+    def record(self, T: np.ndarray, source_stamp: int, generation: int, now: float, continues: bool = True,
+               placed: bool = False) -> bool:
         """Keep a published result for tracking, unless a reset came after its pair was taken (`generation`
         is not the current one) or a newer pair's result is already kept. `continues`: the pair started
         from the last result (origin in `TRACKED`), so the motion from it is the velocity `predicted` goes on
-        with (a pose found without it, or from a topic guess, starts afresh). Whether it was kept."""
+        with (a pose found without it, or from a topic guess, starts afresh). `placed`: the pose was placed by a
+        search, not tracked from its start (it had none, or left it: a jump); a placement right after one gives
+        the velocity. Whether it was kept."""
         with self._lock:
             if generation != self._generation or source_stamp < self._last_stamp:
                 return False
-            if not continues:
-                self._previous = None
-            elif self._last_T is not None and source_stamp > self._last_stamp:
-                self._previous = (self._last_T, self._last_stamp)
+            newer = self._last_T is not None and source_stamp > self._last_stamp
+            if placed and self._placed and newer:  # placed twice: the motion between the two placements
+                self._previous, self._placed = (self._last_T, self._last_stamp), False
+            elif not continues:
+                self._previous, self._placed = None, placed
+            elif newer:
+                self._previous, self._placed = (self._last_T, self._last_stamp), False
+            self._again = False
             self._last_T, self._last_time, self._last_stamp = T, now, source_stamp
             return True
 
@@ -157,5 +182,5 @@ class Tracker:
         """Forget the topic guess and the last result; results of pairs taken before now are not recorded."""
         with self._lock:
             self._guess, self._last_T, self._last_time, self._last_stamp = None, None, -np.inf, -1
-            self._previous = None
+            self._previous, self._placed, self._again = None, False, False
             self._generation += 1

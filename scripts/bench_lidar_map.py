@@ -829,7 +829,8 @@ def follow(loc: MapLocalizer, poses: np.ndarray, scans: list[np.ndarray], sectio
     """Scans taken 100 ms apart localised one after another, each started and judged as register_node's map
     mode does (its `Tracker`, `map_state` and `policy.judge` with the LiDAR map profile's settings): the first from
     `first` (an `initialpose`; None: without a guess), each next one in state tracking from the last published
-    pose, moved on at the velocity of the last two when `predict` (`map.predict_motion`); after
+    pose, moved on at the velocity of the last two when `predict` (`map.predict_motion`; the scan after a pose
+    placed by a search is then placed again, without a guess, and the two give the velocity); after
     `map.lost_after` misses in a row (state lost) from it too but searched for in the whole map as well, until
     a pose reaches `map.relocalize_confidence`. Each record has the state it
     was reported in and whether the node would publish it."""
@@ -850,7 +851,7 @@ def follow(loc: MapLocalizer, poses: np.ndarray, scans: list[np.ndarray], sectio
         recs.append(rec)
         if publish:
             tracker.record(result.transformation, stamp, tracker.generation, float(i),
-                           continues=motion_continues(start.origin, moved.left))
+                           continues=motion_continues(start.origin, moved.left), placed=moved.jumped)
     return recs
 
 

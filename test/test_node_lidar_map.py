@@ -337,24 +337,28 @@ def test_first_scan_is_placed_without_a_guess(run):
 
 
 def test_the_drive_is_tracked(run):
-    """After the first placement every scan taken is tracked from the last pose (the profile's
-    map.predict_motion: moved on at the last two poses' velocity once there are two) and published right."""
+    """A placement tells no velocity: the scan taken after the first is placed again without a guess (the
+    profile's map.predict_motion); from then on every scan taken is tracked from the last pose moved on at the
+    last two poses' velocity, and published right."""
     later = answered(run, "start")[1:] + answered(run, "drive")
     drive = answered(run, "drive")
     assert len(drive) >= 2, f"only {len(drive)} of the drive's {sum(s.phase == 'drive' for s in run.sent)} scans taken"
+    (sent, status), later = later[0], later[1:]
+    assert status["localization"] == "global" and status["initial_guess"] == "none", status
+    assert status["published"] == "true" and right(run, sent) and status["jumped"] == "true", status
     for sent, status in later:
         assert status["localization"] == "tracking" and status["initial_guess"] in TRACKED, status
         assert status["published"] == "true" and right(run, sent), (sent.phase, pose_error(run, sent), status)
         assert status["jumped"] == "false", status
-    assert [v["initial_guess"] for _, v in later][1:] == ["predicted"] * (len(later) - 1), later
+    assert [v["initial_guess"] for _, v in later] == ["predicted"] * len(later), later
 
 
 def test_a_kidnapped_vehicle_is_placed_again(run):
     """The kidnapped vehicle's scans taken before it is placed again publish nothing (no wrong pose: checked
     above); it is placed within map.lost_after (2) + 2 scans taken (after two misses tracking is lost and
-    the scan is localised without a guess) and tracked on, the first scan after it from the placed pose
-    itself (the jump is not a velocity to predict with). The placement says `jumped: true` and is counted among
-    the diagnostics' `pose_jumps`; the tracked scans say `jumped: false`."""
+    the scan is localised without a guess) and tracked on after the scan that follows it is placed again (the
+    jump is not a velocity to predict with; the two placements are). The placements say `jumped: true` and are
+    counted among the diagnostics' `pose_jumps`; the tracked scans say `jumped: false`."""
     kidnap = answered(run, "kidnap")
     states = [(v["localization"], v["initial_guess"], v["published"]) for _, v in kidnap]
     placed = next((n for n, (_, v) in enumerate(kidnap) if v["published"] == "true"), None)
@@ -367,13 +371,14 @@ def test_a_kidnapped_vehicle_is_placed_again(run):
         assert status["localization"] == "global" and status["initial_guess"] == "none", states
         assert int(run.diagnostics["tracking_lost"]) >= 1, run.diagnostics
     after = kidnap[placed + 1:] + answered(run, "drive_on")
+    # the jump to the placed pose is no motion to go on with: the next scan is placed again, without a guess
+    (sent, status), after = after[0], after[1:]
+    assert status["initial_guess"] == "none" and status["published"] == "true" and right(run, sent), status
     for sent, status in after:
         assert status["localization"] == "tracking" and status["published"] == "true", status
-        assert status["jumped"] == "false", status
+        assert status["jumped"] == "false" and status["initial_guess"] == "predicted", status
         assert right(run, sent), (sent.phase, pose_error(run, sent), status)
     assert answered(run, "drive_on"), "no scan of the drive after the kidnap taken"
-    # the jump to the placed pose is no motion to go on with: the next scan starts from that pose as it is
-    assert after[0][1]["initial_guess"] == "last_result", [v["initial_guess"] for _, v in after]
 
 
 def test_published_covariances_are_valid(run):

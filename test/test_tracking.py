@@ -126,6 +126,43 @@ def test_tracking_moves_the_last_result_on_at_the_velocity_of_the_last_two():
     assert not any(motion_continues(origin, jumped=False) for origin in ("none", "initialpose", "initial_guess"))
 
 
+def test_a_pose_placed_without_a_guess_is_placed_again_for_its_velocity():
+    """With stamps (map.predict_motion), the pair after a placement without a guess is placed again (once), and
+    the two placements give the velocity; without stamps, or once the second placement missed, it is tracked
+    from the placement as before. A pose tracked from a topic guess is not placed again."""
+    ms = 1_000_000  # ns
+    t = Tracker()
+    g = t.generation
+    assert t.record(shift(1.0), source_stamp=100 * ms, generation=g, now=1.0, continues=False, placed=True)
+    s = t.start(TRACKING, "lidar", "map", now=1.1, stamp=200 * ms)
+    assert s.origin == "none" and s.T is None  # placed again: a vehicle may have moved on 2 m in 100 ms
+    # the pair after it, while that one is being placed: tracked from the placement, not placed a third time
+    assert t.start(TRACKING, "lidar", "map", now=1.2, stamp=300 * ms).origin == "last_result"
+    assert t.record(shift(3.0), source_stamp=200 * ms, generation=g, now=1.3, continues=False, placed=True)
+    assert t.predicted(300 * ms)[0, 3] == pytest.approx(5.0)  # 2 m per 100 ms, from the two placements
+    s = t.start(TRACKING, "lidar", "map", now=1.4, stamp=300 * ms)
+    assert s.origin == "predicted" and s.T[0, 3] == pytest.approx(5.0)
+    assert t.record(shift(5.0), source_stamp=300 * ms, generation=g, now=1.5)  # tracked on: placed no more
+    assert t.start(TRACKING, "lidar", "map", now=1.6, stamp=400 * ms).origin == "predicted"
+
+    missed = Tracker()  # the second placement missed (not recorded): tracked from the first
+    assert missed.record(shift(1.0), source_stamp=100 * ms, generation=0, now=1.0, continues=False, placed=True)
+    assert missed.start(TRACKING, "lidar", "map", now=1.1, stamp=200 * ms).origin == "none"
+    s = missed.start(TRACKING, "lidar", "map", now=1.2, stamp=300 * ms)
+    assert s.origin == "last_result" and s.T[0, 3] == 1.0
+
+    unstamped = Tracker()  # map.predict_motion off: no velocity to learn
+    assert unstamped.record(shift(1.0), source_stamp=100 * ms, generation=0, now=1.0, continues=False, placed=True)
+    assert unstamped.start(TRACKING, "lidar", "map", now=1.1).origin == "last_result"
+
+    clicked = Tracker()  # tracked from an operator's pose: not a placement
+    assert clicked.record(shift(1.0), source_stamp=100 * ms, generation=0, now=1.0, continues=False)
+    assert clicked.start(TRACKING, "lidar", "map", now=1.1, stamp=200 * ms).origin == "last_result"
+    clicked.record(shift(1.0), source_stamp=200 * ms, generation=0, now=1.2, continues=False, placed=True)
+    clicked.reset()  # forgets the placement
+    assert clicked.start(TRACKING, "lidar", "map", now=1.3, stamp=300 * ms).origin == "parameter"
+
+
 def test_in_state_global_a_tracked_start_is_dropped_and_a_topic_guess_kept():
     """Global and lost localise without a guess: the last pose, moved on or not, is not used there (unless
     `keep`)."""
@@ -302,11 +339,12 @@ def test_map_settings_are_checked():
 
 
 def test_placement_says_how_a_pose_stands_to_its_start():
-    """A pose with no start, or beyond tracking's reach of it, jumped; only while no pose was known (step
-    global) is that a relocalisation; a pose within reach of its start neither left it nor jumped."""
+    """A pose with no start, or beyond tracking's reach of it, jumped; a pose found without a start (in state
+    tracking: placed again to learn the motion), or while no pose was known (step global) beyond reach of its
+    start, is a relocalisation; a pose within reach of its start neither left it nor jumped."""
     none, near = Start(None, "none"), Start(shift(1.0), "predicted")
     for mode in (GLOBAL, map_state.TRACKING):
         step = map_state.Step(mode, 0)
-        assert map_state.placement(step, none, reached=False) == map_state.Placement(False, mode == GLOBAL, True)
+        assert map_state.placement(step, none, reached=False) == map_state.Placement(False, True, True)
         assert map_state.placement(step, near, reached=False) == map_state.Placement(True, mode == GLOBAL, True)
         assert map_state.placement(step, near, reached=True) == map_state.Placement(False, False, False)
