@@ -474,12 +474,17 @@ class MapLocalizer:
             # with the index, a track that moved beyond GICP's reach from its guess (a stale guess, which may
             # have slid onto a look-alike place along a repeating street) is checked like an unsure one
             far = indexed and tracked is not None and not self.within_reach(tracked.transformation, guess)
-            if tracked is not None and tracked.confidence >= c.track_below and not far:
+            # a track as well fitted moved along a road as where GICP left it, outside a corridor: stopped on a
+            # plateau short of the place (a guess metres behind a vehicle), not in the place's own fit
+            plateau = indexed and tracked is not None and not far and self.on_a_plateau(tracked, scan)
+            if tracked is not None and tracked.confidence >= c.track_below and not far and not plateau:
                 return tracked
             if indexed:  # an unsure track: the place index's answer, bounded by the track's if they differ
                 if tracked is not None and far:  # not tracked from its guess but found away from it: in a
                     # corridor, a look-alike place as the index's answer may be
                     tracked = self.in_a_corridor(tracked, scan, "found beyond tracking's reach of its guess")
+                if tracked is not None and plateau:  # its place along the road is its guess's, not its fit's
+                    tracked = replace(tracked, confidence=below_rival(tracked.confidence, tracked.confidence))
                 return self.chosen([self.retrieved(scan), *([tracked] if tracked else [])])
             assert geometry is not None
             centroid, radius, _ = geometry
@@ -503,6 +508,17 @@ class MapLocalizer:
         named = f"{IN_A_CORRIDOR}: structure within {ENCLOSING_REACH:g} m in {enclosure:.0%} of directions, {how}"
         return replace(result, unconstrained=(*result.unconstrained, named),
                        confidence=below_rival(result.confidence, result.confidence))
+
+    def on_a_plateau(self, result: RegistrationResult, scan: np.ndarray) -> bool:
+        """Whether a tracked result is named as well fitted along the scan's main axis (`flat`) while the scan is
+        not enclosed as in a corridor (`PlaceIndex.enclosure` below `corridor_share`; 0: never). In a uniform
+        corridor GICP stops anywhere along it and the robot's last pose holds it there; on a road a pose as well
+        fitted moved 3 spacings either way lies on a plateau short of the place's own fit (on the training
+        campuses' drives from guesses 2 m behind, every such track was 1.4-1.8 m off, and no right one was named).
+        """
+        share = self.config.corridor_share
+        return share > 0 and any(AS_WELL_FITTED in u for u in result.unconstrained) and \
+            self.place_index().enclosure(scan) < share
 
     def within_reach(self, T: np.ndarray, guess: np.ndarray) -> bool:
         """Whether the pose T_map_scan `T` lies within tracking's reach of `guess`: GICP's correspondence
