@@ -396,7 +396,9 @@ class LocalizationConfig:
                               "moved 3 map spacings either way along the scan's main horizontal axis (a uniform "
                               "corridor) is named unconstrained along it, its covariance widened by that shift; "
                               "found without a guess (the place index), its confidence is also held at 1 - its "
-                              "own (0: off).", low=0.0, high=10.0)
+                              "own; tracked outside a corridor (corridor_share), it lies on a plateau short of the "
+                              "place and is checked by the place index as an unsure track is (0: off).",
+                              low=0.0, high=10.0)
     corridor_share: float = setting(0.0, "A scan that has structure (0.3 m to index_band above its ground) within "
                                     "4 m of the sensor in at least this share of directions is in a corridor, which "
                                     "one scan cannot tell from look-alike corridors: a pose searched for there (the "

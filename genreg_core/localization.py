@@ -42,8 +42,9 @@ distinct poses cannot both be right, so the confidence is at most 1 - the rival'
 among the result's `unconstrained` motions ("translation along (x, y, z) to a rival pose d m away": a
 slide along a road or a corridor whose structure repeats) and widens the covariance. The map may be
 voxelised on load (`map_voxel`; with `cache_dir`, once: kept there). With the index, tracking aligns against the whole map too (no local maps
-to rebuild as the robot moves), and an unsure track, or one that moved beyond GICP's reach from its guess
-(`track_distance`: the guess was stale), is checked by the index's search rather than GenReg.
+to rebuild as the robot moves), and an unsure track, one that moved beyond GICP's reach from its guess
+(`track_distance`: the guess was stale), or one on a plateau along a road (`on_a_plateau`: as well fitted moved
+along it, outside a corridor), is checked by the index's search rather than GenReg.
 
 With a guess (tracking), the scan is aligned by GICP from the guess against the map around the guessed
 scan position (`local_radius` scan radii; the whole map when it fits), prepared once per region

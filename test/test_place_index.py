@@ -386,6 +386,35 @@ def test_a_corridor_scan_placed_without_a_guess_is_named_and_held_and_a_tracked_
             assert moved.confidence <= 0.5, (moved.confidence, moved.unconstrained)
 
 
+def test_a_track_on_a_plateau_along_a_road_is_checked_by_the_place_index(street: tuple[Scene, np.ndarray]) -> None:
+    """A track named as well fitted along the scan's main axis outside a corridor (GICP stopped on a plateau short
+    of the place, from a guess metres behind) is checked as an unsure track is: the place index's pose wins, bounded
+    by the track held at 1 - its own; in a corridor, or without `corridor_share`, the track stands as tracked. The
+    scans are the corridor test's (the same seed): the corridor's enclosed, the street's not."""
+    config = LocalizationConfig(retrieve=8, map_voxel=0.2, flat_fit=0.92, corridor_share=0.45)
+    rng = np.random.default_rng(17)
+    for scene, map_xyz, enclosed in corridor_and_street(street):
+        loc = MapLocalizer(map_xyz, config=config)
+        T, scan = scan_along(scene, rng)
+        truth = loc.localize(scan, initial_guess=T)  # tracked from the truth: the index's answer stands in for it
+        assert transform_errors(truth.transformation, T)[1] < 0.1
+        short = T.copy()
+        short[:3, 3] -= 1.8 * T[:3, 0]  # 1.8 m behind along the sensor's heading
+        plateau = replace(truth, transformation=short, confidence=0.7,
+                          unconstrained=("translation along (1.00, 0.00, 0.00): as well fitted 0.60 m along it",))
+        asked = []
+        loc.track = lambda *args, plateau=plateau, **kw: plateau
+        loc.retrieved = lambda scan, truth=truth, asked=asked: asked.append(1) or replace(truth, confidence=0.95)
+        found = loc.localize(scan, initial_guess=short)
+        if enclosed:  # in a corridor the robot's last pose holds the track
+            assert not asked and found is plateau
+        else:
+            assert asked and np.allclose(found.transformation, truth.transformation)
+            assert found.confidence == pytest.approx(min(0.95, 1.0 - min(0.7, 0.3)))
+        loc.config = replace(config, corridor_share=0.0)  # no corridors told apart: every track as tracked
+        assert loc.localize(scan, initial_guess=short) is plateau
+
+
 def test_a_track_as_well_fitted_along_a_uniform_corridor_names_it_and_a_street_does_not(
         street: tuple[Scene, np.ndarray]) -> None:
     config = LocalizationConfig(retrieve=8, map_voxel=0.2, flat_fit=0.92)
