@@ -484,9 +484,12 @@ class MapLocalizer:
                 if tracked is not None and far:  # not tracked from its guess but found away from it: in a
                     # corridor, a look-alike place as the index's answer may be
                     tracked = self.in_a_corridor(tracked, scan, "found beyond tracking's reach of its guess")
-                if tracked is not None and plateau:  # its place along the road is its guess's, not its fit's
+                found = self.retrieved(scan)
+                if tracked is not None and plateau and found.confidence >= c.track_below and \
+                        self.distinct(found.transformation, tracked.transformation):
+                    # the index places it elsewhere: the track's place along the road is its guess's, not its fit's
                     tracked = replace(tracked, confidence=below_rival(tracked.confidence, tracked.confidence))
-                return self.chosen([self.retrieved(scan), *([tracked] if tracked else [])])
+                return self.chosen([found, *([tracked] if tracked else [])])
             assert geometry is not None
             centroid, radius, _ = geometry
             searched = self.judged(self.refined(scan, guess, apply_transform(guess, centroid[None])[0], radius), scan)
@@ -514,9 +517,10 @@ class MapLocalizer:
         """Whether a tracked result is named as well fitted along the scan's main axis (`flat`) while the scan is
         not enclosed as in a corridor (`PlaceIndex.enclosure` below `corridor_share`; 0: never). In a uniform
         corridor GICP stops anywhere along it and the robot's last pose holds it there; on a road a pose as well
-        fitted moved 3 spacings either way lies on a plateau short of the place's own fit (on the training
+        fitted moved 3 spacings either way may lie on a plateau short of the place's own fit (on the training
         campuses' drives from guesses 2 m behind, every such track was 1.4-1.8 m off, and no right one was named).
-        """
+        Such a track is checked by the place index; where the index places the scan elsewhere (confidently, a
+        distinct pose), the track is held at 1 - its own as the index's rival."""
         share = self.config.corridor_share
         return share > 0 and any(AS_WELL_FITTED in u for u in result.unconstrained) and \
             self.place_index().enclosure(scan) < share
@@ -729,7 +733,7 @@ class MapLocalizer:
         than `verify_fitness` of the points, no slides are tried and the candidates are aligned by
         `unfit_iterations` GICP iterations."""
         t0 = time.perf_counter()
-        c, voxel = self.config, self.voxel_size
+        c = self.config
         hits = self.place_index().retrieve(scan, c.retrieve)
         t1 = time.perf_counter()
         whole = self.whole_map()
@@ -744,10 +748,9 @@ class MapLocalizer:
             aligned += [self._voxels.align(sample, T, max_iterations=COARSE_ITERATIONS)
                         for T in self.slides(sample, fittest)]
         coarse, fitness = [T for T, _ in aligned], [share for _, share in aligned]
-        separation, kept = np.radians(self.registrar.config.pdsac.mode_separation), []
+        kept: list[int] = []
         for k in np.argsort(fitness, kind="stable")[::-1]:  # the fittest distinct poses
-            if len(kept) < c.candidates and all(distinct_poses(coarse[k], coarse[j], separation,
-                                                               c.rival_distance * voxel) for j in kept):
+            if len(kept) < c.candidates and all(self.distinct(coarse[k], coarse[j]) for j in kept):
                 kept.append(int(k))
         t2 = time.perf_counter()
         iterations = c.unfit_iterations if unfit else c.track_iterations
@@ -770,6 +773,12 @@ class MapLocalizer:
         shifts = np.arange(step, self.config.slide_reach + 1e-9, step)
         return moved_along(T, direction, (*shifts, *-shifts))
 
+    def distinct(self, T_a: np.ndarray, T_b: np.ndarray) -> bool:
+        """Whether two map poses are distinct (`rival_distance` map voxels or PDSAC's mode separation apart): two
+        distinct poses of one scan cannot both be right."""
+        return distinct_poses(T_a, T_b, np.radians(self.registrar.config.pdsac.mode_separation),
+                              self.config.rival_distance * self.voxel_size)
+
     def chosen(self, results: Sequence[RegistrationResult]) -> RegistrationResult:
         """The most confident of several results for one scan, its confidence bounded by the most confident
         distinct one (`rival_distance` map voxels or PDSAC's mode separation apart: two distinct poses cannot
@@ -778,9 +787,7 @@ class MapLocalizer:
         y, z) to a rival pose d m away") and its offset widens the covariance as a mixture of the two poses
         would (p (1 - p) d d^T on the translation block, p the rival's probability)."""
         best = max(results, key=lambda r: r.confidence)
-        separation = np.radians(self.registrar.config.pdsac.mode_separation)
-        rivals = [r for r in results if r.confidence > 0 and distinct_poses(
-            r.transformation, best.transformation, separation, self.config.rival_distance * self.voxel_size)]
+        rivals = [r for r in results if r.confidence > 0 and self.distinct(r.transformation, best.transformation)]
         if not rivals:
             return best
         rival = max(rivals, key=lambda r: r.confidence)
