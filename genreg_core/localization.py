@@ -484,12 +484,9 @@ class MapLocalizer:
                 if tracked is not None and far:  # not tracked from its guess but found away from it: in a
                     # corridor, a look-alike place as the index's answer may be
                     tracked = self.in_a_corridor(tracked, scan, "found beyond tracking's reach of its guess")
-                found = self.retrieved(scan)
-                if tracked is not None and plateau and found.confidence >= c.track_below and \
-                        self.distinct(found.transformation, tracked.transformation):
-                    # the index places it elsewhere: the track's place along the road is its guess's, not its fit's
+                if tracked is not None and plateau:  # its place along the road is its guess's, not its fit's
                     tracked = replace(tracked, confidence=below_rival(tracked.confidence, tracked.confidence))
-                return self.chosen([found, *([tracked] if tracked else [])])
+                return self.chosen([self.retrieved(scan), *([tracked] if tracked else [])])
             assert geometry is not None
             centroid, radius, _ = geometry
             searched = self.judged(self.refined(scan, guess, apply_transform(guess, centroid[None])[0], radius), scan)
@@ -519,8 +516,8 @@ class MapLocalizer:
         corridor GICP stops anywhere along it and the robot's last pose holds it there; on a road a pose as well
         fitted moved 3 spacings either way may lie on a plateau short of the place's own fit (on the training
         campuses' drives from guesses 2 m behind, every such track was 1.4-1.8 m off, and no right one was named).
-        Such a track is checked by the place index; where the index places the scan elsewhere (confidently, a
-        distinct pose), the track is held at 1 - its own as the index's rival."""
+        Such a track is checked by the place index, held at 1 - its own as the index's rival: where the index
+        cannot place the scan either, nothing is published."""
         share = self.config.corridor_share
         return share > 0 and any(AS_WELL_FITTED in u for u in result.unconstrained) and \
             self.place_index().enclosure(scan) < share

@@ -388,11 +388,10 @@ def test_a_corridor_scan_placed_without_a_guess_is_named_and_held_and_a_tracked_
 
 def test_a_track_on_a_plateau_along_a_road_is_checked_by_the_place_index(street: tuple[Scene, np.ndarray]) -> None:
     """A track named as well fitted along the scan's main axis outside a corridor (GICP stopped on a plateau short
-    of the place, from a guess metres behind) is checked by the place index: where the index places the scan
-    elsewhere, its pose wins, bounded by the track held at 1 - its own; where it does not (unsure), the track
-    stands, bounded by the index's answer as any rival; in a corridor, or without `corridor_share`, the track
-    stands as tracked. The scans are the corridor test's (the same seed): the corridor's enclosed, the street's
-    not."""
+    of the place, from a guess metres behind) is checked by the place index and held at 1 - its own: the index's
+    pose wins, bounded by it; where the index is unsure too, the held track is not confident; in a corridor, or
+    without `corridor_share`, the track stands as tracked. The scans are the corridor test's (the same seed): the
+    corridor's enclosed, the street's not."""
     config = LocalizationConfig(retrieve=8, map_voxel=0.2, flat_fit=0.92, corridor_share=0.45)
     rng = np.random.default_rng(17)
     for scene, map_xyz, enclosed in corridor_and_street(street):
@@ -414,8 +413,8 @@ def test_a_track_on_a_plateau_along_a_road_is_checked_by_the_place_index(street:
             assert asked and np.allclose(found.transformation, truth.transformation)
             assert found.confidence == pytest.approx(min(0.95, 1.0 - min(0.7, 0.3)))
             loc.retrieved = lambda scan, truth=truth: replace(truth, confidence=0.2)  # the index is unsure
-            kept = loc.localize(scan, initial_guess=short)
-            assert np.allclose(kept.transformation, short) and kept.confidence == pytest.approx(min(0.7, 1.0 - 0.2))
+            held = loc.localize(scan, initial_guess=short)
+            assert np.allclose(held.transformation, short) and held.confidence == pytest.approx(0.3)
         loc.config = replace(config, corridor_share=0.0)  # no corridors told apart: every track as tracked
         assert loc.localize(scan, initial_guess=short) is plateau
 
