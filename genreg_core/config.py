@@ -394,7 +394,9 @@ class LocalizationConfig:
                                     "tracked).", low=1, high=1000)
     flat_fit: float = setting(0.0, "A tracked pose that seats at least this share of its own tight fitness when "
                               "moved 3 map spacings either way along the scan's main horizontal axis (a uniform "
-                              "corridor) is named unconstrained along it, its covariance widened by that shift; "
+                              "corridor) is named unconstrained along it, its covariance widened by that shift, "
+                              "and aligned again from the best fit found up to 3 spacings either way, half a "
+                              "spacing apart (GICP from a guess stops on a ripple of such a valley); "
                               "found without a guess (the place index), its confidence is also held at 1 - its "
                               "own; tracked outside a corridor (corridor_share), it lies on a plateau short of the "
                               "place and is checked by the place index as an unsure track is (0: off).",

@@ -124,9 +124,9 @@ WARM_UP_POINTS = 20_000  # `MapLocalizer.warm_up`'s scan: this many map points
 MIN_NEAR_SHARE = 0.05
 AS_WELL_FITTED = "as well fitted"  # `MapLocalizer.flat`'s name of a flat axis among a result's unconstrained motions
 IN_A_CORRIDOR = "place: a corridor alike to others"  # `retrieved`'s name of a scan enclosed as in a corridor
-FLAT_SHIFT_SPACINGS = 3.0  # a tracked pose's fit is tested this many map spacings along the scan's main axis
-# (`MapLocalizer.flat`): on the training campuses (0.11 m spacings) tracked corridor scans stop up to 0.3 m
-# along the corridor
+FLAT_SHIFT_SPACINGS = 3  # a tracked pose's fit is tested this many map spacings along the scan's main axis
+# (`MapLocalizer.flat`), and a flat valley's best fit searched as far, half a spacing at a time: on the training
+# campuses (0.11 m spacings) tracked corridor scans stop up to 0.3 m along the corridor
 
 
 def median_spacing(points: np.ndarray, samples: int = SPACING_SAMPLES, seed: int = 0,
@@ -604,7 +604,9 @@ class MapLocalizer:
               local: LocalMap | None = None, iterations: int | None = None) -> RegistrationResult | None:
         """The voxelised scan aligned by GICP from `guess` (T_map_scan) against the local map around it
         (`local`), verified and built into a result as a registration is (`result.build_result`: inlier ratio
-        NaN, taken as 1: no network pass; no generated clouds; `start` "initial_guess"). `geometry`: the
+        NaN, taken as 1: no network pass; no generated clouds; `start` "initial_guess"; `verified`); a result as
+        well fitted moved along the scan's main axis is named and aligned again from that valley's best fit
+        (`flat`). `geometry`: the
         scan's (centroid, radius) from `scan_geometry`, if known (used only to find the local map). Its confidence is the calibration's tracking
         model's (`tracking_confidence`; without one, uncalibrated as `genreg_core.result` says). None when the
         map holds too few points around the guess, or when the guess puts less than `MIN_NEAR_SHARE` of the
@@ -623,9 +625,27 @@ class MapLocalizer:
         voxel, index = self.voxel_size, local.index
         if index.near_share(apply_transform(guess, sample), c.track_distance * voxel) < MIN_NEAR_SHARE:
             return None  # the guess puts the scan off the map: GICP would wander (and search the tree far from it)
-        T = gicp_target(index).align(sample, guess, max_distance=c.track_distance * voxel,
-                                     max_iterations=iterations or c.track_iterations, threads=self.threads)
+        gicp = gicp_target(index)
+
+        def aligned(start: np.ndarray) -> np.ndarray:
+            return gicp.align(sample, start, max_distance=c.track_distance * voxel,
+                              max_iterations=iterations or c.track_iterations, threads=self.threads)
+
+        T = aligned(guess)
         t1 = time.perf_counter()
+        result, valley = self.flat(*self.verified(scan, sample, index, T), sample, index)
+        if valley is not None:  # GICP stopped on a ripple of a flat valley: aligned again from the valley's best fit
+            result, _ = self.flat(*self.verified(scan, sample, index, aligned(valley)), sample, index, search=False)
+        t2 = time.perf_counter()
+        result.timings = {"refine": t1 - t0, "result": t2 - t1, "total": t2 - t0}
+        return result
+
+    def verified(self, scan: np.ndarray, sample: np.ndarray, index: TargetIndex, T: np.ndarray
+                 ) -> tuple[RegistrationResult, float]:
+        """A tracked pose T (of `sample`, the scan's tracked points) verified against the map's `index` and built
+        into a result as a registration is (`result.build_result`), with the share of the sample it seats within
+        one map spacing (`TIGHT_SPACINGS`)."""
+        voxel = self.voxel_size
         moved = apply_transform(T, sample)
         distance = FITNESS_SPACINGS * voxel
         within = overlap_shares(sample, index, T, np.multiply([*SPACINGS, FITNESS_SPACINGS, TIGHT_SPACINGS], voxel))
@@ -636,13 +656,10 @@ class MapLocalizer:
         result = build_result(T, verified, Aligned(moved, index, T[:3, 3], distance), self.tracking_confidence,
                               start="initial_guess", aligned_source=apply_transform(T, scan).astype(np.float32),
                               source_valid_mask=np.ones(len(scan), bool))
-        result = self.flat(result, sample, index, float(within[-1]))
-        t2 = time.perf_counter()
-        result.timings = {"refine": t1 - t0, "result": t2 - t1, "total": t2 - t0}
-        return result
+        return result, float(within[-1])
 
-    def flat(self, result: RegistrationResult, sample: np.ndarray, index: TargetIndex, tight: float
-             ) -> RegistrationResult:
+    def flat(self, result: RegistrationResult, tight: float, sample: np.ndarray, index: TargetIndex,
+             search: bool = True) -> tuple[RegistrationResult, np.ndarray | None]:
         """A tracked result whose fit is as good moved along the scan's main horizontal axis (a uniform
         corridor or road): `sample` (the tracked scan points, scan frame) seats within one map spacing as
         many points (at least `flat_fit` x `tight`, the pose's own share) at the pose moved
@@ -650,19 +667,36 @@ class MapLocalizer:
         which its Hessian does not see; the axis is named among the result's unconstrained motions and the
         covariance widened by the shift's square along it. The confidence is kept (the robot's last pose holds
         a tracked scan in its corridor; `retrieved` bounds a pose found without one). Poses less confident than
-        `track_below` are not tested (they are not kept as tracked; off: `flat_fit` 0)."""
+        `track_below` are not tested (they are not kept as tracked; off: `flat_fit` 0).
+
+        With `search`, a named result also gives the valley's best fit: the pose moved by the multiple of half a
+        spacing, up to `FLAT_SHIFT_SPACINGS` spacings either way, that seats the most points, when that is more
+        than the pose's own (else None). GICP from a guess off along a corridor stops on a ripple of the valley's floor
+        (a thin wall's other face, the map's voxels) 0.2-0.3 m from the place that it reaches from there."""
         ratio = self.config.flat_fit
         if ratio <= 0 or tight <= 0 or result.confidence < self.config.track_below:  # an unsure pose is not kept
-            return result
+            return result, None
         T = result.transformation
         u = T[:3, :3] @ main_axis(sample)
-        shift = FLAT_SHIFT_SPACINGS * self.voxel_size
-        moved = [float(overlap_shares(sample, index, S, np.array([TIGHT_SPACINGS * self.voxel_size]))[0])
-                 for S in moved_along(T, u, (shift, -shift))]
-        if max(moved) < ratio * tight:
-            return result
+        voxel = self.voxel_size
+
+        def seated(spacings: Sequence[float]) -> list[float]:
+            return [float(overlap_shares(sample, index, S, np.array([TIGHT_SPACINGS * voxel]))[0])
+                    for S in moved_along(T, u, np.multiply(spacings, voxel))]
+
+        ends = (FLAT_SHIFT_SPACINGS, -FLAT_SHIFT_SPACINGS)
+        shares = dict(zip(ends, seated(ends), strict=True))
+        if max(shares.values()) < ratio * tight:
+            return result, None
+        shift = FLAT_SHIFT_SPACINGS * voxel
         text = f"{motion('translation along', u)}: {AS_WELL_FITTED} {shift:.2f} m along it"
-        return spanning(result, shift * u, 1.0, text)
+        named = spanning(result, shift * u, 1.0, text)
+        if not search:
+            return named, None
+        inner = [k / 2 for k in range(1 - 2 * FLAT_SHIFT_SPACINGS, 2 * FLAT_SHIFT_SPACINGS) if k != 0]
+        shares |= dict(zip(inner, seated(inner), strict=True))
+        best = max(shares, key=lambda k: (shares[k], -abs(k)))  # the nearer of equally fitting shifts
+        return named, moved_along(T, u, [best * voxel])[0] if shares[best] > tight else None
 
     def prepare(self) -> None:
         """Build now what localisation would build on first use: with the place index, the index and the
