@@ -601,12 +601,13 @@ class MapLocalizer:
         return self._local
 
     def track(self, scan: np.ndarray, guess: np.ndarray, geometry: tuple[np.ndarray, float] | None = None,
-              local: LocalMap | None = None, iterations: int | None = None) -> RegistrationResult | None:
+              local: LocalMap | None = None, iterations: int | None = None, search: bool = True
+              ) -> RegistrationResult | None:
         """The voxelised scan aligned by GICP from `guess` (T_map_scan) against the local map around it
         (`local`), verified and built into a result as a registration is (`result.build_result`: inlier ratio
         NaN, taken as 1: no network pass; no generated clouds; `start` "initial_guess"; `verified`); a result as
-        well fitted moved along the scan's main axis is named and aligned again from that valley's best fit
-        (`flat`). `geometry`: the
+        well fitted moved along the scan's main axis is named and, with `search`, aligned again from that
+        valley's best fit (`flat`). `geometry`: the
         scan's (centroid, radius) from `scan_geometry`, if known (used only to find the local map). Its confidence is the calibration's tracking
         model's (`tracking_confidence`; without one, uncalibrated as `genreg_core.result` says). None when the
         map holds too few points around the guess, or when the guess puts less than `MIN_NEAR_SHARE` of the
@@ -633,7 +634,7 @@ class MapLocalizer:
 
         T = aligned(guess)
         t1 = time.perf_counter()
-        result, valley = self.flat(*self.verified(scan, sample, index, T), sample, index)
+        result, valley = self.flat(*self.verified(scan, sample, index, T), sample, index, search)
         if valley is not None:  # GICP stopped on a ripple of a flat valley: aligned again from the valley's best fit
             result, _ = self.flat(*self.verified(scan, sample, index, aligned(valley)), sample, index, search=False)
         t2 = time.perf_counter()
@@ -785,9 +786,12 @@ class MapLocalizer:
                 kept.append(int(k))
         t2 = time.perf_counter()
         iterations = c.unfit_iterations if unfit else c.track_iterations
-        results = [r for k in kept if (r := self.track(scan, coarse[k], local=whole, iterations=iterations)) is not None]
+        # a candidate named as well fitted along the scan's axis is held (below): where it lies in its valley
+        # decides nothing, and is not searched
+        results = [r for k in kept
+                   if (r := self.track(scan, coarse[k], local=whole, iterations=iterations, search=False)) is not None]
         if not results:  # nothing retrieved near enough to the map to align: the whole map from the identity
-            results = [self.track(scan, np.eye(4), local=whole) or self._mapper.register(scan, self.map)]
+            results = [self.track(scan, np.eye(4), local=whole, search=False) or self._mapper.register(scan, self.map)]
         best = self.in_a_corridor(self.chosen(results), scan)
         if any(AS_WELL_FITTED in motion for motion in best.unconstrained):  # a uniform corridor, and no guess
             best = replace(best, confidence=below_rival(best.confidence, best.confidence))
