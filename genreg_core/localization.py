@@ -607,7 +607,7 @@ class MapLocalizer:
         (`local`), verified and built into a result as a registration is (`result.build_result`: inlier ratio
         NaN, taken as 1: no network pass; no generated clouds; `start` "initial_guess"; `verified`); a result as
         well fitted moved along the scan's main axis is named and, with `search`, aligned again from that
-        valley's best fit (`flat`). `geometry`: the
+        valley's best fit (`flat`) unless it lies on a plateau along a road (`on_a_plateau`). `geometry`: the
         scan's (centroid, radius) from `scan_geometry`, if known (used only to find the local map). Its confidence is the calibration's tracking
         model's (`tracking_confidence`; without one, uncalibrated as `genreg_core.result` says). None when the
         map holds too few points around the guess, or when the guess puts less than `MIN_NEAR_SHARE` of the
@@ -635,7 +635,9 @@ class MapLocalizer:
         T = aligned(guess)
         t1 = time.perf_counter()
         result, valley = self.flat(*self.verified(scan, sample, index, T), sample, index, search)
-        if valley is not None:  # GICP stopped on a ripple of a flat valley: aligned again from the valley's best fit
+        # GICP stopped on a ripple of a flat valley: aligned again from the valley's best fit (in a corridor; a valley
+        # along a road is a plateau, which the place index checks: `on_a_plateau`)
+        if valley is not None and not (self.config.retrieve > 0 and self.on_a_plateau(result, scan)):
             result, _ = self.flat(*self.verified(scan, sample, index, aligned(valley)), sample, index, search=False)
         t2 = time.perf_counter()
         result.timings = {"refine": t1 - t0, "result": t2 - t1, "total": t2 - t0}
