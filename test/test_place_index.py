@@ -452,7 +452,8 @@ def test_a_track_in_a_flat_valley_is_aligned_again_from_the_valleys_best_fit(
     spacing at a time up to 3 spacings either way along the scan's main axis, lies within 0.06 m of the truth;
     `track` aligns again from there (here with a GICP that stops where it starts: the search alone moves it). At
     the true pose nothing is named or searched; without the test (`flat_fit` 0), or where a street is told from a
-    corridor (`corridor_share`: a valley along a road is a plateau, `on_a_plateau`), the track stays where it
+    corridor (`corridor_share` 0.6: these street scans are enclosed in 7-58 % of directions, the corridor's of
+    `corridor_and_street` in 77-78 %; a valley along a road is a plateau, `on_a_plateau`), the track stays where it
     stopped."""
     scene, map_xyz = street
     config = LocalizationConfig(retrieve=8, map_voxel=0.2, flat_fit=0.92)
@@ -478,7 +479,7 @@ def test_a_track_in_a_flat_valley_is_aligned_again_from_the_valleys_best_fit(
         assert tracked is not None and np.allclose(tracked.transformation, valley)
         at_truth, none = loc.flat(*loc.verified(scan, sample, index, T), sample, index)
         assert none is None and not [u for u in at_truth.unconstrained if "as well fitted" in u]
-        for off in (replace(config, flat_fit=0.0), replace(config, corridor_share=0.45)):
+        for off in (replace(config, flat_fit=0.0), replace(config, corridor_share=0.6)):
             loc.config = off  # the test off, or a street told from a corridor: a plateau, left to the place index
             still = loc.track(scan, short, local=loc.whole_map())
             assert still is not None and np.allclose(still.transformation, short)
