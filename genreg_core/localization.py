@@ -674,8 +674,9 @@ class MapLocalizer:
 
         With `search`, a named result also gives the valley's best fit: the pose moved by the multiple of half a
         spacing, up to `FLAT_SHIFT_SPACINGS` spacings either way, that seats the most points, when that is more
-        than the pose's own (else None). GICP from a guess off along a corridor stops on a ripple of the valley's floor
-        (a thin wall's other face, the map's voxels) 0.2-0.3 m from the place that it reaches from there."""
+        than the pose's own (else None). GICP from a guess off along a corridor can stop on a ripple of the valley's
+        floor (a thin wall's other face, the map's voxels) 0.2-0.3 m from the place; from the best fit it reaches
+        the place."""
         ratio = self.config.flat_fit
         if ratio <= 0 or tight <= 0 or result.confidence < self.config.track_below:  # an unsure pose is not kept
             return result, None
