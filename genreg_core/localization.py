@@ -351,6 +351,7 @@ class MapLocalizer:
         self._whole: LocalMap | None = None  # the whole map prepared for GICP (retrieved places' alignment)
         self._voxels: VoxelTarget | None = None  # ... and for VGICP (their coarse alignment)
         self._index: PlaceIndex | None = None
+        self._enclosed: tuple[np.ndarray, float] | None = None  # the last scan asked and its enclosure
         rng = np.random.default_rng(0)
         sample = self.map if len(self.map) <= EXTENT_SAMPLES else self.map[rng.choice(len(self.map), EXTENT_SAMPLES)]
         _, self.extent = robust_extent(sample)
@@ -503,7 +504,7 @@ class MapLocalizer:
         enclosed as in a corridor (`PlaceIndex.enclosure` at least `corridor_share`): one scan does not tell a
         building's look-alike corridors apart."""
         share = self.config.corridor_share
-        enclosure = self.place_index().enclosure(scan) if share > 0 else 0.0
+        enclosure = self.enclosure(scan) if share > 0 else 0.0
         if share <= 0 or enclosure < share:
             return result
         named = f"{IN_A_CORRIDOR}: structure within {ENCLOSING_REACH:g} m in {enclosure:.0%} of directions, {how}"
@@ -519,8 +520,14 @@ class MapLocalizer:
         Such a track is checked by the place index, held at 1 - its own as the index's rival: where the index
         cannot place the scan either, nothing is published."""
         share = self.config.corridor_share
-        return share > 0 and any(AS_WELL_FITTED in u for u in result.unconstrained) and \
-            self.place_index().enclosure(scan) < share
+        return share > 0 and any(AS_WELL_FITTED in u for u in result.unconstrained) and self.enclosure(scan) < share
+
+    def enclosure(self, scan: np.ndarray) -> float:
+        """`PlaceIndex.enclosure` of a voxelised scan, kept for the last scan asked (a scan's track, its plateau test
+        and its search may each ask)."""
+        if self._enclosed is None or self._enclosed[0] is not scan:
+            self._enclosed = (scan, self.place_index().enclosure(scan))
+        return self._enclosed[1]
 
     def within_reach(self, T: np.ndarray, guess: np.ndarray) -> bool:
         """Whether the pose T_map_scan `T` lies within tracking's reach of `guess`: GICP's correspondence
