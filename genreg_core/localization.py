@@ -127,6 +127,9 @@ IN_A_CORRIDOR = "place: a corridor alike to others"  # `retrieved`'s name of a s
 FLAT_SHIFT_SPACINGS = 3  # a tracked pose's fit is tested this many map spacings along the scan's main axis
 # (`MapLocalizer.flat`), and a flat valley's best fit searched as far, half a spacing at a time: on the training
 # campuses (0.11 m spacings) tracked corridor scans stop up to 0.3 m along the corridor
+VALLEY_BASIN = 1.0  # GICP aligned again from a flat valley's best fit within this many map spacings of where it
+# stopped comes back there (the training campuses: 17 of 17 such tracks within 3 mm; from 1.5 spacings and more,
+# 29 of 29 moved 0.15-0.30 m): only a best fit farther away is aligned from
 
 
 def median_spacing(points: np.ndarray, samples: int = SPACING_SAMPLES, seed: int = 0,
@@ -681,7 +684,7 @@ class MapLocalizer:
 
         With `search`, a named result also gives the valley's best fit: the pose moved by the multiple of half a
         spacing, up to `FLAT_SHIFT_SPACINGS` spacings either way, that seats the most points, when that is more
-        than the pose's own (else None). GICP from a guess off along a corridor can stop on a ripple of the valley's
+        than the pose's own and lies beyond GICP's basin around it (`VALLEY_BASIN`; else None). GICP from a guess off along a corridor can stop on a ripple of the valley's
         floor (a thin wall's other face, the map's voxels) 0.2-0.3 m from the place; from the best fit it reaches
         the place."""
         ratio = self.config.flat_fit
@@ -707,7 +710,8 @@ class MapLocalizer:
         inner = [k / 2 for k in range(1 - 2 * FLAT_SHIFT_SPACINGS, 2 * FLAT_SHIFT_SPACINGS) if k != 0]
         shares |= dict(zip(inner, seated(inner), strict=True))
         best = max(shares, key=lambda k: (shares[k], -abs(k)))  # the nearer of equally fitting shifts
-        return named, moved_along(T, u, [best * voxel])[0] if shares[best] > tight else None
+        beyond = shares[best] > tight and abs(best) > VALLEY_BASIN  # else GICP from it comes back to T
+        return named, moved_along(T, u, [best * voxel])[0] if beyond else None
 
     def prepare(self) -> None:
         """Build now what localisation would build on first use: with the place index, the index and the

@@ -449,12 +449,12 @@ def test_a_track_in_a_flat_valley_is_aligned_again_from_the_valleys_best_fit(
         street: tuple[Scene, np.ndarray], monkeypatch: pytest.MonkeyPatch) -> None:
     """A tracked pose 0.3 m along the street from the sensor's true pose (where GICP from a guess may stop on a
     ripple of a flat valley) is named as well fitted along it, and the valley's best fit, searched half a map
-    spacing at a time up to 3 spacings either way along the scan's main axis, lies within 0.06 m of the truth;
-    `track` aligns again from there (here with a GICP that stops where it starts: the search alone moves it). At
-    the true pose nothing is named or searched; without the test (`flat_fit` 0), or where a street is told from a
-    corridor (`corridor_share` 0.6: these street scans are enclosed in 7-58 % of directions, the corridor's of
-    `corridor_and_street` in 77-78 %; a valley along a road is a plateau, `on_a_plateau`), the track stays where it
-    stopped."""
+    spacing at a time up to 3 spacings either way along the scan's main axis, lies beyond one spacing (GICP's
+    basin) and within 0.06 m of the truth; `track` aligns again from there (here with a GICP that stops where it
+    starts: the search alone moves it). At the true pose, or half a spacing from it, no valley is given; without
+    the test (`flat_fit` 0), or where a street is told from a corridor (`corridor_share` 0.6: these street scans
+    are enclosed in 7-58 % of directions, the corridor's of `corridor_and_street` in 77-78 %; a valley along a
+    road is a plateau, `on_a_plateau`), the track stays where it stopped."""
     scene, map_xyz = street
     config = LocalizationConfig(retrieve=8, map_voxel=0.2, flat_fit=0.92)
     loc = MapLocalizer(map_xyz, config=config)
@@ -472,13 +472,16 @@ def test_a_track_in_a_flat_valley_is_aligned_again_from_the_valleys_best_fit(
         move = valley[:3, 3] - short[:3, 3]  # level, unturned, by a multiple of half a spacing
         steps = np.linalg.norm(move) / half
         assert np.allclose(valley[:3, :3], short[:3, :3]) and abs(move[2]) < 1e-9
-        assert abs(steps - round(steps)) < 1e-6 and 1 <= round(steps) <= 6
+        assert abs(steps - round(steps)) < 1e-6 and 3 <= round(steps) <= 6  # beyond GICP's basin (1 spacing)
         assert transform_errors(valley, T)[1] < 0.06
         assert loc.flat(*loc.verified(scan, sample, index, short), sample, index, search=False)[1] is None
         tracked = loc.track(scan, short, local=loc.whole_map())
         assert tracked is not None and np.allclose(tracked.transformation, valley)
         at_truth, none = loc.flat(*loc.verified(scan, sample, index, T), sample, index)
         assert none is None and not [u for u in at_truth.unconstrained if "as well fitted" in u]
+        near = T.copy()
+        near[0, 3] += 0.5 * loc.voxel_size  # within GICP's basin of the truth: GICP finds it, no search needed
+        assert loc.flat(*loc.verified(scan, sample, index, near), sample, index)[1] is None
         for off in (replace(config, flat_fit=0.0), replace(config, corridor_share=0.6)):
             loc.config = off  # the test off, or a street told from a corridor: a plateau, left to the place index
             still = loc.track(scan, short, local=loc.whole_map())
