@@ -175,6 +175,14 @@ class MapParams:
                                    "most 5 of their intervals ahead; the LiDAR map profile: on); the scan after a "
                                    "pose placed by a search (jumped) is placed again without a guess, and the two "
                                    "give the velocity; false: from the last accepted pose.")
+    odometry: bool = setting(False, "Subscribe to odom (nav_msgs/Odometry, sensor-data QoS: header.frame_id the "
+                             "odometry frame, child_frame_id the localised frame, i.e. base_frame or the source "
+                             "frame): tracking starts each scan from the last accepted pose moved by the odometry "
+                             "between the two scans' stamps (registration_status initial_guess: odometry; before "
+                             "predict_motion, and also right after a placement), and each published pose gives the "
+                             "map to odometry frame transform at its stamp on odom_transform (and on /tf with "
+                             "publish_tf, instead of the map to the localised frame, as REP-105 asks).",
+                             start_up=True)
     localization: LocalizationConfig = setting(LocalizationConfig(), "MapLocalizer's settings (the core's "
                                                "defaults), read when the node starts.", start_up=True)
 
@@ -279,6 +287,8 @@ class NodeConfig:
         self.base_T_source_matrix()
         if self.target_file and not self.target_frame:
             raise ConfigError("target_file needs target_frame (the file has no frame id)")
+        if self.map.odometry and not self.map.enabled:
+            raise ConfigError("map.odometry needs map.enabled (odometry moves the pose tracked in a map)")
         if self.map.enabled and self.workers != 1:
             raise ConfigError(f"map.enabled needs workers 1 (scans are localised in the node's process), got {self.workers}")
         if self.map.enabled and self.map.localization.place_points < self.registration.min_points:

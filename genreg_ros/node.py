@@ -7,6 +7,8 @@ Topics (relative names, remap them):
   and `initialpose` (geometry_msgs/PoseWithCovarianceStamped in the target frame, e.g. RViz's 2D Pose
   Estimate): the source frame's pose in the target frame; both override the parameter and expire after
   `initial_guess_timeout`;
+- in  `odom` (nav_msgs/Odometry, with map.odometry): the localised frame's pose in the odometry frame; tracking
+  moves the last pose by it (`genreg_ros.odometry`);
 - out `aligned_cloud` (PointCloud2): the source's finite points moved into the target frame, every other
   field kept; frame_id = target frame, stamp = source stamp;
 - out `transform` (TransformStamped): header.frame_id = target frame (parent), child_frame_id = source
@@ -16,6 +18,8 @@ Topics (relative names, remap them):
 - out `registration_status` (diagnostic_msgs/DiagnosticArray, header = source stamp and target frame): one
   status per pair formed: a result's confidence, fitness, inlier RMSE (m) and which start won, or why the
   pair was not registered (superseded, discarded, failed; `genreg_ros.publication`);
+- out `odom_transform` (TransformStamped, with map.odometry): the target (map) frame to the odometry frame at
+  each published pose's stamp (REP-105; on /tf instead of `transform` with publish_tf);
 - out `generated_cloud` (PointCloud2, if publish_generated): the network's generated source (A_g) in the
   target frame;
 - out `/diagnostics` (diagnostic_msgs/DiagnosticArray): latency, fitness, counts and their reasons.
@@ -58,6 +62,7 @@ from typing import TYPE_CHECKING, Any
 import rclpy
 from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PoseWithCovarianceStamped, TransformStamped
+from nav_msgs.msg import Odometry as OdometryMsg
 from rclpy.clock import Clock, ClockType
 from rclpy.event_handler import SubscriptionEventCallbacks, UnsupportedEventTypeError
 from rclpy.executors import ExternalShutdownException
@@ -74,7 +79,7 @@ from genreg_core.memory import retain_freed_memory
 from genreg_ros import params
 from genreg_ros.cloud_file import CloudFileError, read_cloud
 from genreg_ros.config import NodeConfig
-from genreg_ros.conversions import msg_to_matrix
+from genreg_ros.conversions import msg_to_matrix, stamp_error, stamp_ns
 from genreg_ros.diagnostics import DOCS, InputWatch, Reporter, Stats, Watched, build_status
 from genreg_ros.intake import CloudPair, FixedTarget, Intake
 from genreg_ros.pipelines import Context, Pipeline, make_pipeline
@@ -204,6 +209,9 @@ class RegisterNode(LifecycleNode):
         self._subs["guess"] = self.create_subscription(TransformStamped, "initial_guess", self._on_guess, 1)
         self._subs["initialpose"] = self.create_subscription(
             PoseWithCovarianceStamped, "initialpose", self._on_initialpose, 1)
+        if c.map.odometry:  # best effort (any publisher matches), deep enough for 100 Hz odometry between scans
+            self._subs["odom"] = self.create_subscription(
+                OdometryMsg, "odom", self._on_odom, QoSProfile(depth=50, reliability=ReliabilityPolicy.BEST_EFFORT))
         self._stats.subscribed()  # staleness, silent publishers and sequence gaps count from activation
         reliability = {SOURCE: c.qos.reliability, TARGET: target}
         self._watch.watch({t: Watched(self._subs[t].topic_name, reliability[t]) for t in reliability if t in self._subs})
@@ -340,6 +348,23 @@ class RegisterNode(LifecycleNode):
 
     def _on_initialpose(self, msg: PoseWithCovarianceStamped) -> None:
         self._set_guess(msg.pose, msg.header.frame_id, None, "initialpose")
+
+    def _on_odom(self, msg: OdometryMsg) -> None:
+        """Keep an odometry pose (`genreg_ros.odometry`); one that cannot be used is a counted drop."""
+        frame, child, localised = msg.header.frame_id, msg.child_frame_id, self._config.base_frame or \
+            self._config.source_frame
+        try:
+            if stamp_error(msg.header) or not frame or not child:
+                raise ValueError(stamp_error(msg.header) or "the odometry frame and child frame must be named")
+            T = msg_to_matrix(msg.pose)
+        except ValueError as exc:
+            self._report.drop("bad_odometry", f"odom message ignored: {exc}")
+            return
+        if localised and child != localised:
+            self._report.drop("odometry_frames", f"odom message ignored: it tracks '{child}', the node localises "
+                              f"'{localised}'")
+            return
+        self._tracker.odometry.add(stamp_ns(msg.header), T, frame, child)
 
     def _set_guess(self, msg: TransformStamped | PoseWithCovarianceStamped, parent: str, child: str | None,
                    origin: str) -> None:

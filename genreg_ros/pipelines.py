@@ -211,13 +211,13 @@ class Pipeline(ABC):
             return settings
 
     def _start(self, c: NodeConfig, pair: CloudPair, tracking: bool | None = None, parameter: bool = True,
-               predict: bool = False) -> Start:
-        """The pair's start (`Tracker.start`; `predict`: the last result moved on to the pair's source stamp); a
-        topic guess discarded on the way is logged (expired) or counted as a drop (frames that are not the
-        pair's)."""
+               stamped: bool = False) -> Start:
+        """The pair's start (`Tracker.start`; `stamped` (map mode): the last result moved to the pair's source
+        stamp by the odometry, or with `map.predict_motion` on at the last two results' velocity); a topic guess
+        discarded on the way is logged (expired) or counted as a drop (frames that are not the pair's)."""
         start = self._ctx.tracker.start(c, pair.source.frame, pair.target.frame, time.monotonic(),
                                         tracking=tracking, parameter=parameter,
-                                        stamp=pair.source_stamp if predict else None)
+                                        stamp=pair.source_stamp if stamped else None, predict=c.map.predict_motion)
         if start.discarded == "expired":
             self._ctx.report.info(start.note)
         elif start.discarded:
@@ -242,9 +242,11 @@ class Pipeline(ABC):
                             f"< warn_confidence {c.warn_confidence} (fitness {result.fitness:.2f})")
         ctx.tracker.record(result.transformation, pair.source_stamp, generation, time.monotonic(),
                            continues=motion_continues(start.origin, jumped), placed=verdict.jumped)
+        odom = ctx.tracker.odometry.at(pair.source_stamp) if c.map.odometry else None
         return Publication(status, Outputs(header, prepared.source, pair.source.frame, result, latency,
                                            prepared.decode_s, figures(prepared, result, *times),
-                                           verdict.low_confidence, registered_decoded, prepared.base_T_source))
+                                           verdict.low_confidence, registered_decoded, prepared.base_T_source,
+                                           odom if odom is not None and odom.child == pair.source.frame else None))
 
     def _unanswered(self, pair: CloudPair, counter: Literal["dropped", "failed"], reason: str,
                     text: str) -> Publication:
@@ -352,8 +354,7 @@ class MapPipeline(Pipeline):
         localizer = self._map_localizer(registrar, c, prepared.target_points, pair.target.frame)
         generation = self._ctx.tracker.generation
         before = self._state.step()  # global (no pose known: global or lost) or tracking
-        step, start = scan_start(before, self._start(c, pair, tracking=True, parameter=False,
-                                                     predict=c.map.predict_motion),
+        step, start = scan_start(before, self._start(c, pair, tracking=True, parameter=False, stamped=True),
                                  keep=c.map.localization.retrieve > 0)
         t1 = time.perf_counter()
         try:

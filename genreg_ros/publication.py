@@ -29,10 +29,12 @@ from rclpy.qos import QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import PointCloud2
 from std_msgs.msg import Header
 
+from genreg_core.geometry import invert_transform
 from genreg_ros.config import NodeConfig
 from genreg_ros.conversions import matrix_to_msg, matrix_to_pose_msg, split_ns
 from genreg_ros.diagnostics import Reporter, Stats
 from genreg_ros.intake import CloudPair
+from genreg_ros.odometry import OdometryPose
 from genreg_ros.pointcloud2 import DecodedCloud, replace_points, transform_cloud, xyz_to_msg
 from genreg_ros.policy import Level, Verdict
 from genreg_ros.sync import InOrder
@@ -44,7 +46,8 @@ if TYPE_CHECKING:
 
 LEVELS = {"ok": DiagnosticStatus.OK, "warn": DiagnosticStatus.WARN, "error": DiagnosticStatus.ERROR}
 OUTPUTS = (("aligned_cloud", PointCloud2), ("transform", TransformStamped), ("generated_cloud", PointCloud2),
-           ("pose", PoseWithCovarianceStamped), ("registration_status", DiagnosticArray))
+           ("pose", PoseWithCovarianceStamped), ("registration_status", DiagnosticArray),
+           ("odom_transform", TransformStamped))
 
 
 @dataclass(frozen=True)
@@ -61,6 +64,7 @@ class Outputs:
     low_confidence: bool
     registered_decoded: bool  # the registered points were the decoded ones (no preprocessing changed them)
     base_T_source: np.ndarray | None = None  # the result is base_frame's pose: the decoded cloud's mounting on it
+    odom: OdometryPose | None = None  # map.odometry: the localised frame's odometry pose at the source stamp
 
 
 @dataclass(frozen=True)
@@ -156,12 +160,17 @@ class Publishers:
             aligned = transform_cloud(header, job.source, sensor)
         transform = matrix_to_msg(T_target_source, header, job.source_frame)
         pose = matrix_to_pose_msg(T_target_source, header, result.covariance)
+        # REP-105: the target (map) frame's transform to the odometry frame, T_map_odom = T_map_child T_odom_child^-1
+        odom = None if job.odom is None else \
+            matrix_to_msg(T_target_source @ invert_transform(job.odom.T), header, job.odom.frame)
         t1 = time.perf_counter()
         self.pubs["aligned_cloud"].publish(aligned)
         self.pubs["transform"].publish(transform)
         self.pubs["pose"].publish(pose)
-        if self._tf is not None:
-            self._tf.sendTransform(transform)
+        if odom is not None:
+            self.pubs["odom_transform"].publish(odom)
+        if self._tf is not None:  # with odometry, map -> odom (odom -> base is the odometry's)
+            self._tf.sendTransform(transform if odom is None else odom)
         if generated:
             self.pubs["generated_cloud"].publish(xyz_to_msg(header, result.source_generated))
         t2 = time.perf_counter()

@@ -7,7 +7,9 @@ a pair's registration (`Tracker.start`) is, in this order of preference:
   tracking, a result newer than it exists;
 - the last result (use_last_result_as_guess), recorded only for pairs taken since the last reset and never
   replaced by the result of an older pair (several workers finish out of order); given the pair's source
-  stamp (map mode, `map.predict_motion`), moved on at the velocity of the last two results (origin
+  stamp (map mode) and odometry of the pair's source frame covering both stamps (`map.odometry`,
+  `genreg_ros.odometry`), moved by the odometry's motion between them (origin `odometry`, whatever placed the
+  last result); else, given the stamp and `map.predict_motion`, moved on at the velocity of the last two results (origin
   `predicted`, `Tracker.predicted`); a pose placed by a search (found without a guess, or beyond tracking's
   reach of its start: a jump) has no velocity yet, so the pair after it is placed without a guess again
   (once; origin `none`) and the two placements give the velocity: a vehicle placed while it moves is not
@@ -28,9 +30,10 @@ import numpy as np
 
 from genreg_core.geometry import extrapolate
 from genreg_ros.config import NodeConfig
+from genreg_ros.odometry import Odometry
 
-ORIGINS = ("none", "parameter", "initial_guess", "initialpose", "last_result", "predicted")  # registration_status values
-TRACKED = ("last_result", "predicted")  # the origins that continue the tracked motion
+ORIGINS = ("none", "parameter", "initial_guess", "initialpose", "last_result", "predicted", "odometry")  # status values
+TRACKED = ("last_result", "predicted", "odometry")  # the origins that continue the tracked motion
 # the last result is moved on by at most this many times the motion between the last two (a longer gap: a pause
 # or a stall, whose motion the last one no longer tells)
 MAX_EXTRAPOLATION = 5.0
@@ -62,15 +65,16 @@ class Start:
 def motion_continues(origin: str, jumped: bool) -> bool:
     """Whether a result continues the tracked motion (`Tracker.record`'s `continues`): it started from the last
     result as kept (`last_result`: whatever it moved by is the motion), or from the last result moved on
-    (`predicted`) and stayed within reach of that start (`jumped` False); a prediction the result left (a
+    (`predicted`, `odometry`) and stayed within reach of that start (`jumped` False); a start the result left (a
     vehicle carried away, an abrupt stop) is no velocity to go on with."""
-    return origin == "last_result" or (origin == "predicted" and not jumped)
+    return origin == "last_result" or (origin in ("predicted", "odometry") and not jumped)
 
 
 class Tracker:
-    """The topic guess, the last result and the reset generation of one node."""
+    """The topic guess, the last result, the odometry and the reset generation of one node."""
 
     def __init__(self) -> None:
+        self.odometry = Odometry()  # filled by the node's odom subscription (map.odometry); kept over resets
         self._lock = threading.Lock()
         self._guess: TopicGuess | None = None
         self._last_T: np.ndarray | None = None
@@ -113,15 +117,17 @@ class Tracker:
         return extrapolate(previous[0], last_T, ratio)
 
     def start(self, config: NodeConfig, source_frame: str, target_frame: str, now: float, *,
-              tracking: bool | None = None, parameter: bool = True, stamp: int | None = None) -> Start:
+              tracking: bool | None = None, parameter: bool = True, stamp: int | None = None,
+              predict: bool = True) -> Start:
         """The start of a pair mapping `source_frame` into `target_frame` under `config`
         (initial_guess_timeout, use_last_result_as_guess, initial_guess). `tracking` overrides
         use_last_result_as_guess; `parameter` False leaves the initial_guess parameter out (map mode);
-        `stamp`: the pair's source stamp (ns), to move the last result on to it (`predicted`; None: as kept); with
-        it, the first pair after a pose placed by a search (`record`'s `placed`: no velocity) is placed again,
+        `stamp`: the pair's source stamp (ns), to move the last result to it by the odometry's motion (`odometry`)
+        or, with `predict`, on at the last two results' velocity (`predicted`); None: as kept. Without odometry,
+        the first pair after a pose placed by a search (`record`'s `placed`: no velocity) is placed again,
         without a guess."""
         with self._lock:
-            g, last_T, last_time = self._guess, self._last_T, self._last_time
+            g, last_T, last_time, last_stamp = self._guess, self._last_T, self._last_time, self._last_stamp
         discarded = note = ""
         tracking = config.use_last_result_as_guess if tracking is None else tracking
         if g is not None and config.initial_guess_timeout > 0 and now - g.received > config.initial_guess_timeout:
@@ -138,10 +144,14 @@ class Tracker:
             with self._lock:
                 if self._guess is g:  # not replaced meanwhile
                     self._guess = None
-        if tracking and last_T is not None and stamp is not None and self._place_again():
+        moved = None if not (tracking and last_T is not None and stamp is not None) else \
+            self.odometry.motion(last_stamp, stamp, source_frame)
+        if moved is not None:
+            return Start(last_T @ moved, "odometry", discarded, note)
+        if tracking and last_T is not None and stamp is not None and predict and self._place_again():
             return Start(None, "none", discarded, note)
         if tracking and last_T is not None:
-            ahead = None if stamp is None else self.predicted(stamp)
+            ahead = None if stamp is None or not predict else self.predicted(stamp)
             if ahead is not None:
                 return Start(ahead, "predicted", discarded, note)
             return Start(last_T, "last_result", discarded, note)

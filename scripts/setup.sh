@@ -22,7 +22,7 @@ if [ ! -f "$STAMP" ] || [ "$(cat "$STAMP")" != "$REQ_HASH" ]; then
     colcon-common-extensions
   pip install -q ros-kilted-rclpy ros-kilted-rmw-fastrtps-cpp ros-kilted-sensor-msgs \
     ros-kilted-geometry-msgs ros-kilted-diagnostic-msgs ros-kilted-lifecycle-msgs ros-kilted-rcl-lifecycle \
-    ros-kilted-std-srvs
+    ros-kilted-std-srvs ros-kilted-nav-msgs
   [ -f setup.py ] && pip install -q --no-deps -e .
   echo "$REQ_HASH" > "$STAMP"
 fi

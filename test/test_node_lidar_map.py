@@ -32,9 +32,12 @@ import numpy as np
 import open3d as o3d
 import pytest
 from diagnostic_msgs.msg import DiagnosticArray
+from geometry_msgs.msg import TransformStamped
+from nav_msgs.msg import Odometry
 from rclpy.qos import QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
 from scipy.spatial.transform import Rotation
 from sensor_msgs.msg import PointCloud2
+from std_msgs.msg import Header
 from std_srvs.srv import Trigger
 from test_node import apply, diag_values, errors, node_process, stamp, wait_subscribed
 from test_node_map import MAP_FRAME_ID
@@ -153,12 +156,15 @@ class Stream:
         self.next_at = time.monotonic()
         self.children: set[str] = set()  # the child frames of the transforms published (`lidar_node`)
         self.run: Run | None = None  # what the node answered, once it stopped (`lidar_node`)
+        self.odometry: Callable[[object, Scan], None] | None = None  # publishes the odometry of a scan's stamp
 
     def publish(self, scan: Scan, phase: str) -> None:
         time.sleep(max(0.0, self.next_at - time.monotonic()))
         self.next_at = max(self.next_at + PERIOD, time.monotonic())
         header = stamp(self.t)
         header.frame_id = LIDAR
+        if self.odometry is not None:  # the odometry at the scan's stamp, sent before the scan
+            self.odometry(header, scan)
         self.pub.publish(array_to_msg(header, scan.records, is_dense=False))
         self.sent.append(Sent((header.stamp.sec, header.stamp.nanosec), phase, scan))
         self.t += PERIOD
@@ -199,17 +205,21 @@ class Stream:
 
 
 @contextmanager
-def lidar_node(ros_namespace: str, name: str, params: dict, tmp_path_factory, cast: Callable[[], dict]):
+def lidar_node(ros_namespace: str, name: str, params: dict, tmp_path_factory, cast: Callable[[], dict],
+               also: Callable[[object], None] | None = None):
     """register_node in its own process with config/genreg_lidar_map.yaml and `params`, a best-effort scan
     publisher and a deep registration_status subscription (every status of a burst: those of the scans
-    superseded during one slow localisation come at once); `cast()` makes the scans while the node starts.
-    Yields (Stream, scans) once the node is up and subscribed; `stream.run` (after the block) is what it answered."""
+    superseded during one slow localisation come at once); `cast()` makes the scans while the node starts;
+    `also(harness)` adds a test's own publishers and subscriptions. Yields (Stream, scans) once
+    the node is up and subscribed; `stream.run` (after the block) is what it answered."""
     held: dict = {}
 
     def scan_publisher(h):
         held["pub"] = h.helper.create_publisher(PointCloud2, "source_cloud", qos_profile_sensor_data)
         h.helper.create_subscription(DiagnosticArray, "registration_status", h._rec(held.setdefault("statuses", [])),
                                      QoSProfile(depth=STATUS_DEPTH, reliability=ReliabilityPolicy.RELIABLE))
+        if also is not None:
+            also(h)
 
     log = tmp_path_factory.mktemp(name) / "node.log"
     with node_process(f"{ros_namespace}/{name}", log, params, before=scan_publisher,
@@ -476,3 +486,81 @@ def test_a_tilted_sensor_localises_its_base(tilted):
         np.testing.assert_allclose(read_points(msg).points, apply(T_map_base @ MOUNT, xyz), atol=1e-3)
         # against the truth: the sensor's points where they are in the map, to within the pose's error
         assert np.median(np.linalg.norm(read_points(msg).points - apply(sent.truth @ MOUNT, xyz), axis=1)) < 0.25
+
+
+# --------------------------------------------------------------------------- odometry (map.odometry)
+ODOM = "odom"
+ODOM_ERROR = sensor_pose(0.02, -0.01, 0.0, np.radians(0.3))  # the odometry's error per scan driven (drift)
+
+
+@pytest.fixture(scope="module")
+def odometric(ros_namespace, campus, tmp_path_factory) -> tuple[Run, dict[tuple[int, int], np.ndarray], list]:
+    """The node with map.odometry: odometry of the LiDAR (child frame velodyne) in frame odom, drifting by
+    `ODOM_ERROR` per scan driven, sent at each scan's stamp just before the scan. The vehicle stands on the
+    southern street until placed and tracked, then drives east speeding up (0.3 to 2.1 m per scan). Returns
+    what the node answered, the true T_map_odom at each scan's stamp and the odom_transform messages."""
+    world, map_path = campus
+    params = {**PARAMS, "target_file": str(map_path), "target_frame": MAP_FRAME_ID, "map.odometry": "true"}
+    south = street_poses(world)["south"]
+    xs = 6.0 + np.cumsum(0.3 * np.arange(1, 8))
+    poses = {"start": [south(6.0)] * 2, "drive": [south(x) for x in xs]}
+    truth: dict[tuple[int, int], np.ndarray] = {}
+    state = {"truth": poses["start"][0], "odom": np.eye(4)}
+
+    held: dict = {"odom_tf": []}
+
+    def also(h) -> None:
+        held["odom_pub"] = h.helper.create_publisher(Odometry, "odom", QoSProfile(
+            depth=50, reliability=ReliabilityPolicy.RELIABLE))
+        h.helper.create_subscription(TransformStamped, "odom_transform", h._rec(held["odom_tf"]),
+                                     QoSProfile(depth=STATUS_DEPTH, reliability=ReliabilityPolicy.RELIABLE))
+
+    def send_odometry(header, scan: Scan) -> None:
+        moved = np.linalg.inv(state["truth"]) @ scan.truth
+        drift = ODOM_ERROR if np.linalg.norm(moved[:3, 3]) > 1e-6 else np.eye(4)
+        state["truth"], state["odom"] = scan.truth, state["odom"] @ moved @ drift
+        truth[(header.stamp.sec, header.stamp.nanosec)] = scan.truth @ np.linalg.inv(state["odom"])
+        msg = Odometry(header=Header(stamp=header.stamp, frame_id=ODOM), child_frame_id=LIDAR)
+        (msg.pose.pose.position.x, msg.pose.pose.position.y, msg.pose.pose.position.z) = state["odom"][:3, 3]
+        (msg.pose.pose.orientation.x, msg.pose.pose.orientation.y, msg.pose.pose.orientation.z,
+         msg.pose.pose.orientation.w) = Rotation.from_matrix(state["odom"][:3, :3]).as_quat()
+        held["odom_pub"].publish(msg)
+
+    def cast() -> dict[str, list[Scan]]:
+        return {phase: [Scan(driver_records(world, T, seed=700 + 10 * n + k), T) for k, T in enumerate(Ts)]
+                for n, (phase, Ts) in enumerate(poses.items())}
+
+    with lidar_node(ros_namespace, "lidar_odometry", params, tmp_path_factory, cast, also) as (stream, scans):
+        wait_subscribed(stream.h, held["odom_pub"])
+        stream.odometry = send_odometry
+        stream.stand(scans["start"], "start", lambda: stream.registered("start", "tracking") >= 2, 60.0)
+        stream.drive(scans["drive"], "drive")
+    with stream.h.lock:
+        odom_tf = list(held["odom_tf"])
+    return stream.run, truth, odom_tf
+
+
+def test_odometry_moves_the_tracked_pose_and_gives_map_to_odom(odometric):
+    """With map.odometry the scan after the placement is tracked from it moved by the odometry (no second
+    placement: initial_guess odometry, jumped false), and so is every later one while the vehicle speeds up;
+    every published pose is right, and each comes with the map -> odom transform at its stamp (odom_transform:
+    parent map, child odom), within 2 deg / 25 cm of the drifting odometry's true frame."""
+    run, truth, odom_tf = odometric
+    start = answered(run, "start")
+    (first, status), later = start[0], start[1:] + answered(run, "drive")
+    assert status["localization"] == "global" and status["initial_guess"] == "none", status
+    assert status["published"] == "true" and right(run, first), (pose_error(run, first), status)
+    assert len(answered(run, "drive")) >= 4, [v.get("message") for v in run.statuses.values()]
+    for sent, status in later:
+        assert status["localization"] == "tracking" and status["initial_guess"] == "odometry", status
+        assert status["published"] == "true" and status["jumped"] == "false", status
+        assert right(run, sent), (sent.phase, pose_error(run, sent), status)
+    published = {s.key for s in run.sent if s.key in run.poses}
+    by_stamp = {(m.header.stamp.sec, m.header.stamp.nanosec): m for m in odom_tf}
+    assert set(by_stamp) == published, (sorted(by_stamp), sorted(published))
+    for key, msg in by_stamp.items():
+        assert (msg.header.frame_id, msg.child_frame_id) == (MAP_FRAME_ID, ODOM), msg
+        re_, te = errors(msg_to_matrix(msg), truth[key])
+        assert re_ < MAX_RE and te < MAX_TE, (key, re_, te)
+    drifted = [np.linalg.norm(truth[k][:3, 3] - truth[min(truth)][:3, 3]) for k in by_stamp]
+    assert max(drifted) > 0.05  # the odometry frame drifted in the map: the transform followed it
