@@ -1,7 +1,8 @@
 #!/usr/bin/env python3
 """register_node in a large LiDAR map, fed at 10 Hz: map mode through DDS, scan by scan, against the true poses.
 
-    python scripts/bench_lidar_node.py [--seed 7] [--drive-scans 200] [--walk-scans 150] [--json PATH] [--plot PNG]
+    python scripts/bench_lidar_node.py [--seed 7] [--drive-scans 200] [--walk-scans 150] [--odometry] [--json PATH]
+                                       [--plot PNG]
 
 The node runs in its own process (as with `ros2 run`) with config/genreg_lidar_map.yaml as shipped (and
 `diagnostics.period` 1 s). Its map is `bench_lidar_map.py`'s campus of that seed (held out: 7 and up; 4 x 3
@@ -22,6 +23,10 @@ with depth 5 (SensorDataQoS), stamped 100 ms apart and sent at that pace, in fou
            until placed again and tracked twice
   walk     along the corridor at 1.5 m/s (0.15 m a scan), --walk-scans of them
 Every scan is cast (6 moving cars and people around it) and serialised before the node starts.
+With --odometry the node runs with `map.odometry` and this process sends, just before each scan, a
+nav_msgs/Odometry of the sensor (child frame velodyne, frame odom) at the scan's stamp: the true motion since
+the last scan with the errors of wheel odometry (`ODOM_SCALE` long, `ODOM_YAW_DEG_PER_M` of heading per metre),
+and none across the kidnap (the robot carried: its wheels do not turn), so the odometry frame drifts in the map.
 
 Accounting, per phase: a scan sent is answered (one registration_status for it, superseded ones included) or
 lost (none came: dropped before the node took it, which its diagnostics count as missed); of the
@@ -57,6 +62,8 @@ ros_env()  # before the first DDS participant of this process
 import numpy as np
 import open3d as o3d
 from geometry_msgs.msg import PoseWithCovarianceStamped
+from nav_msgs.msg import Odometry
+from rclpy.qos import QoSProfile, ReliabilityPolicy
 from rclpy.serialization import serialize_message
 from scipy.spatial.transform import Rotation
 from std_msgs.msg import Header
@@ -92,6 +99,9 @@ OPERATOR_OFF = (0.3, 5.0)  # the kidnap phase's initialpose: this far (m, to the
 STAND_SCANS = 5  # revolutions cast at a standing place (movers differ), sent in turn: the node, which takes the
 # newest scan when it is free, does not take the same one every time
 NODE_PARAMS = {"diagnostics.period": "1.0"}  # config/genreg_lidar_map.yaml otherwise
+ODOM_FRAME = "odom"
+ODOM_SCALE = 1.02  # --odometry: the odometry's distances 2 % long
+ODOM_YAW_DEG_PER_M = 0.2  # ... and its heading off by this much per metre driven (counter-clockwise)
 
 
 @dataclass
@@ -112,6 +122,7 @@ def parse(argv: list[str] | None = None) -> argparse.Namespace:
     p.add_argument("--drive-step", type=int, default=1, help="m between the drive's scans (1: 10 m/s, 2: 20 m/s)")
     p.add_argument("--walk-scans", type=int, default=150, help="scans of the corridor walk, 0.15 m apart")
     p.add_argument("--misclick", action="store_true", help="an initialpose 500 m off the map after the drive")
+    p.add_argument("--odometry", action="store_true", help="the node with map.odometry, fed the sensor's odometry")
     p.add_argument("--laps", type=int, default=1, help="the four phases this many times (a soak: is RSS flat?)")
     p.add_argument("--stand-timeout", type=float, default=30.0, help="longest stand at the start and the kidnap, s")
     p.add_argument("--startup-timeout", type=float, default=600.0, help="longest wait for the node's map, s")
@@ -148,17 +159,37 @@ def serialised(world: lw.World, poses: np.ndarray, rng: np.random.Generator, sen
 class Stream:
     """Scans published at 10 Hz, stamped 100 ms apart; the node's answers read back by stamp."""
 
-    def __init__(self, client: Client) -> None:
+    def __init__(self, client: Client, odometry=None) -> None:
+        """`odometry`: a nav_msgs/Odometry publisher (--odometry), else None."""
         self.client, self.sent = client, list[Sent]()
         self.stamp = time.time_ns() // PERIOD_NS * PERIOD_NS
         self.next_at = time.monotonic()
+        self.odometry, self.odom = odometry, np.eye(4)  # T_odom_sensor, integrated from the true motion
 
     def publish(self, raw: bytes, truth: np.ndarray, phase: str) -> None:
         time.sleep(max(0.0, self.next_at - time.monotonic()))
         self.next_at = max(self.next_at + PERIOD_NS / 1e9, time.monotonic())
+        if self.odometry is not None:
+            self.odometry.publish(self.odometry_msg(truth, phase))
         self.client.pub_source.publish(restamp(raw, self.stamp))
         self.sent.append(Sent(self.stamp, phase, truth, time.monotonic()))
         self.stamp += PERIOD_NS
+
+    def odometry_msg(self, truth: np.ndarray, phase: str) -> Odometry:
+        """The odometry at this scan's stamp: the last one moved by the true motion since the last scan, with
+        wheel odometry's errors (none into the kidnap, or a lap's start: carried there)."""
+        carried = phase in ("start", "kidnap") and (not self.sent or self.sent[-1].phase != phase)
+        if not carried:
+            moved = np.linalg.inv(self.sent[-1].truth) @ truth
+            metres = float(np.linalg.norm(moved[:3, 3]))
+            moved[:3, 3] *= ODOM_SCALE
+            self.odom = self.odom @ moved @ make_transform(
+                Rotation.from_euler("z", ODOM_YAW_DEG_PER_M * metres, degrees=True).as_matrix(), np.zeros(3))
+        sec, nanosec = divmod(self.stamp, 1_000_000_000)
+        msg = Odometry(header=Header(frame_id=ODOM_FRAME), child_frame_id=SENSOR_FRAME)
+        msg.header.stamp.sec, msg.header.stamp.nanosec = sec, nanosec
+        msg.pose = matrix_to_pose_msg(self.odom, msg.header, None).pose
+        return msg
 
     def tracked(self, since: int) -> int:
         """The scans sent from the `since`-th on published in state tracking so far."""
@@ -330,15 +361,18 @@ def main(argv: list[str] | None = None) -> int:
     print(f"code: {code_state()}; 2 cores, OMP_NUM_THREADS {os.environ.get('OMP_NUM_THREADS', '-')}; "
           f"load average at start {load_text()}; ROS_DOMAIN_ID {os.environ['ROS_DOMAIN_ID']}")
     options = ReplayOptions(params_file=CONFIG_DIR / "genreg_lidar_map.yaml",
-                            node_params={**NODE_PARAMS, "target_file": str(path.resolve()), "target_frame": MAP_FRAME})
+                            node_params={**NODE_PARAMS, "target_file": str(path.resolve()), "target_frame": MAP_FRAME,
+                                         **({"map.odometry": "true"} if args.odometry else {})})
     node = NodeProcess(options, work / "node.log")
     client = Client("", input_reliability="best_effort", input_depth=5, aligned=False, status=True)
     initialpose = client.node.create_publisher(PoseWithCovarianceStamped, "/initialpose", 1)
+    odometry = client.node.create_publisher(Odometry, "odom", QoSProfile(
+        depth=50, reliability=ReliabilityPolicy.RELIABLE)) if args.odometry else None
     try:
         ready_s = wait_ready(client, node, args.startup_timeout)
         time.sleep(1.0)  # discovery settles
         rss_ready, cpu0 = rss_mb(node.proc.pid), cpu_seconds(node.proc.pid)
-        stream = Stream(client)
+        stream = Stream(client, odometry)
         t0, rss_laps = time.monotonic(), []
         for _ in range(args.laps):
             for phase in phases:
