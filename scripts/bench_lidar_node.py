@@ -12,7 +12,8 @@ written once as a binary PCD `target_file` under --work, where the node also kee
 sensor frame as a driver does (`LidarScan.records`: x y z intensity ring time, misses as NaN), best effort
 with depth 5 (SensorDataQoS), stamped 100 ms apart and sent at that pace, in four phases:
   start    standing on the longest street (bench_lidar_map's drive start; five revolutions sent in turn) until
-           the node has placed the vehicle without a guess and tracked it twice (at most --stand-timeout s)
+           the node has placed the vehicle without a guess and tracked it twice (at most --stand-timeout s);
+           not with --moving-start, where the node first sees the vehicle driving (started, or lost, on the way)
   drive    along that street at 10 m/s (1 m a scan; --drive-step 2: 20 m/s), --drive-scans HDL-64-like
            revolutions (~100k points)
   misclick (with --misclick) standing at the drive's end, an `initialpose` 500 m off the map is sent (an RViz
@@ -30,7 +31,8 @@ and none across the kidnap (the robot carried: its wheels do not turn), so the o
 
 Accounting, per phase: a scan sent is answered (one registration_status for it, superseded ones included) or
 lost (none came: dropped before the node took it, which its diagnostics count as missed); of the
-answered, published or not (and why: the status's `reason`); a published pose is wrong when it is 2 deg or
+answered, published or not (and why: the status's `reason`), what each registered scan started from (the
+status's `initial_guess`); a published pose is wrong when it is 2 deg or
 0.25 m or more off its truth, and jumped when its status says it was not tracked from its start. Figures: TE median and largest of the published poses, the share within 0.1 m,
 the node's own latency (registration_status `latency_ms`: the scan's arrival in the node to its result)
 median and p95, and the scans until the first publication after the kidnap. For the run: the time from
@@ -122,6 +124,7 @@ def parse(argv: list[str] | None = None) -> argparse.Namespace:
     p.add_argument("--drive-step", type=int, default=1, help="m between the drive's scans (1: 10 m/s, 2: 20 m/s)")
     p.add_argument("--walk-scans", type=int, default=150, help="scans of the corridor walk, 0.15 m apart")
     p.add_argument("--misclick", action="store_true", help="an initialpose 500 m off the map after the drive")
+    p.add_argument("--moving-start", action="store_true", help="no standing start: placed while it drives")
     p.add_argument("--odometry", action="store_true", help="the node with map.odometry, fed the sensor's odometry")
     p.add_argument("--laps", type=int, default=1, help="the four phases this many times (a soak: is RSS flat?)")
     p.add_argument("--stand-timeout", type=float, default=30.0, help="longest stand at the start and the kidnap, s")
@@ -179,7 +182,7 @@ class Stream:
         """The odometry at this scan's stamp: the last one moved by the true motion since the last scan, with
         wheel odometry's errors (none into the kidnap, or a lap's start: carried there)."""
         carried = phase in ("start", "kidnap") and (not self.sent or self.sent[-1].phase != phase)
-        if not carried:
+        if self.sent and not carried:
             moved = np.linalg.inv(self.sent[-1].truth) @ truth
             metres = float(np.linalg.norm(moved[:3, 3]))
             moved[:3, 3] *= ODOM_SCALE
@@ -268,6 +271,7 @@ def phase_figures(run: list[Answer], phase: str) -> dict[str, object]:
         "reasons": dict(Counter(a.status.get("reason", "") for a in answered
                                 if a.status.get("published") != "true")),
         "states": dict(Counter(a.status.get("localization", "-") for a in answered)),
+        "guesses": dict(Counter(a.status["initial_guess"] for a in answered if "initial_guess" in a.status)),
         "te_median_m": float(np.median(te)) if len(te) else float("nan"),
         "te_max_m": float(te.max()) if len(te) else float("nan"),
         "within_0.1_m": f"{int((te < 0.1).sum())}/{len(te)}",
@@ -353,7 +357,7 @@ def main(argv: list[str] | None = None) -> int:
              "kidnap": walk[:1].repeat(STAND_SCANS, 0), "walk": walk[1:]}
     sensors = {"start": TRACK_SENSOR, "drive": TRACK_SENSOR, "misclick": TRACK_SENSOR, "kidnap": SCAN_SENSOR,
                "walk": SCAN_SENSOR}
-    phases = [p for p in PHASES if p != "misclick" or args.misclick]
+    phases = [p for p in PHASES if (p != "misclick" or args.misclick) and (p != "start" or not args.moving_start)]
     raws = {phase: serialised(world, poses[phase], rng_of("walk-indoor" if sensors[phase] is SCAN_SENSOR else "track",
                                                           args.seed, 100 + k), sensors[phase], phase)
             for k, phase in enumerate(PHASES) if phase in phases}
@@ -409,14 +413,15 @@ def main(argv: list[str] | None = None) -> int:
           f"the middleware), of {sent} sent")
     print()
     print("| phase | sent | answered | lost | published | wrong | jumped | not published: reasons | states | "
-          "TE median / max m | TE < 0.1 m | latency p50 / p95 ms | first published |")
-    print("|---|---|---|---|---|---|---|---|---|---|---|---|---|")
+          "started from | TE median / max m | TE < 0.1 m | latency p50 / p95 ms | first published |")
+    print("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|")
     for phase, f in figures.items():
         reasons = ", ".join(f"{k} {v}" for k, v in sorted(f["reasons"].items())) or "-"
         states = ", ".join(f"{k} {v}" for k, v in sorted(f["states"].items()))
+        guesses = ", ".join(f"{k} {v}" for k, v in sorted(f["guesses"].items()))
         print(f"| {phase} | {f['sent']} | {f['answered']} | {f['lost']} | {f['published']} | {f['wrong']} | {f['jumped']} | "
               f"{reasons} | "
-              f"{states} | {f['te_median_m']:.3f} / {f['te_max_m']:.3f} | {f['within_0.1_m']} | "
+              f"{states} | {guesses} | {f['te_median_m']:.3f} / {f['te_max_m']:.3f} | {f['within_0.1_m']} | "
               f"{f['latency_ms_p50']:.0f} / {f['latency_ms_p95']:.0f} | {f['first_published']} |")
     if args.plot:
         plot_run(run, Path(args.plot), f"register_node in {world.key} at 10 Hz: {args.laps} lap(s), {sent} scans\n"
