@@ -24,10 +24,12 @@ with depth 5 (SensorDataQoS), stamped 100 ms apart and sent at that pace, in fou
            until placed again and tracked twice
   walk     along the corridor at 1.5 m/s (0.15 m a scan), --walk-scans of them
 Every scan is cast (6 moving cars and people around it) and serialised before the node starts.
-With --odometry the node runs with `map.odometry` and this process sends, just before each scan, a
-nav_msgs/Odometry of the sensor (child frame velodyne, frame odom) at the scan's stamp: the true motion since
-the last scan with the errors of wheel odometry (`ODOM_SCALE` long, `ODOM_YAW_DEG_PER_M` of heading per metre),
-and none across the kidnap (the robot carried: its wheels do not turn), so the odometry frame drifts in the map.
+With --odometry the node runs with `map.odometry` and this process sends, just before each scan, the
+nav_msgs/Odometry of the sensor (child frame velodyne, frame odom) at 50 Hz since the last scan (`ODOM_AT`:
+stamped 7, 27, ..., 87 ms after it, so the newest is 13 ms older than the scan and the node interpolates and
+extrapolates): the true motion since the last scan (screw-interpolated) with the errors of wheel odometry
+(`ODOM_SCALE` long, `ODOM_YAW_DEG_PER_M` of heading per metre), and none across the kidnap (the robot carried:
+its wheels do not turn), so the odometry frame drifts in the map.
 
 Accounting, per phase: a scan sent is answered (one registration_status for it, superseded ones included) or
 lost (none came: dropped before the node took it, which its diagnostics count as missed); of the
@@ -86,7 +88,7 @@ from bench_lidar_map import (
 from bench_node import cpu_seconds, rss_mb
 
 from genreg_core.data import lidar_world as lw
-from genreg_core.geometry import make_transform
+from genreg_core.geometry import extrapolate, make_transform
 from genreg_core.metrics import transform_errors
 from genreg_ros.config import CONFIG_DIR
 from genreg_ros.conversions import matrix_to_pose_msg
@@ -104,6 +106,7 @@ NODE_PARAMS = {"diagnostics.period": "1.0"}  # config/genreg_lidar_map.yaml othe
 ODOM_FRAME = "odom"
 ODOM_SCALE = 1.02  # --odometry: the odometry's distances 2 % long
 ODOM_YAW_DEG_PER_M = 0.2  # ... and its heading off by this much per metre driven (counter-clockwise)
+ODOM_AT = (0.07, 0.27, 0.47, 0.67, 0.87)  # --odometry: its messages' stamps between two scans, in scan periods
 
 
 @dataclass
@@ -173,26 +176,31 @@ class Stream:
         time.sleep(max(0.0, self.next_at - time.monotonic()))
         self.next_at = max(self.next_at + PERIOD_NS / 1e9, time.monotonic())
         if self.odometry is not None:
-            self.odometry.publish(self.odometry_msg(truth, phase))
+            for msg in self.odometry_msgs(truth, phase):
+                self.odometry.publish(msg)
         self.client.pub_source.publish(restamp(raw, self.stamp))
         self.sent.append(Sent(self.stamp, phase, truth, time.monotonic()))
         self.stamp += PERIOD_NS
 
-    def odometry_msg(self, truth: np.ndarray, phase: str) -> Odometry:
-        """The odometry at this scan's stamp: the last one moved by the true motion since the last scan, with
-        wheel odometry's errors (none into the kidnap, or a lap's start: carried there)."""
-        carried = phase in ("start", "kidnap") and (not self.sent or self.sent[-1].phase != phase)
-        if self.sent and not carried:
+    def odometry_msgs(self, truth: np.ndarray, phase: str) -> list[Odometry]:
+        """The odometry since the last scan (`ODOM_AT`), before this one: the last scan's moved by the true
+        motion to this one with wheel odometry's errors (none before the first scan, or into the kidnap or a lap's
+        start: carried there), screw-interpolated."""
+        before = self.odom
+        if self.sent and not (phase in ("start", "kidnap") and self.sent[-1].phase != phase):
             moved = np.linalg.inv(self.sent[-1].truth) @ truth
             metres = float(np.linalg.norm(moved[:3, 3]))
             moved[:3, 3] *= ODOM_SCALE
-            self.odom = self.odom @ moved @ make_transform(
+            self.odom = before @ moved @ make_transform(
                 Rotation.from_euler("z", ODOM_YAW_DEG_PER_M * metres, degrees=True).as_matrix(), np.zeros(3))
-        sec, nanosec = divmod(self.stamp, 1_000_000_000)
-        msg = Odometry(header=Header(frame_id=ODOM_FRAME), child_frame_id=SENSOR_FRAME)
-        msg.header.stamp.sec, msg.header.stamp.nanosec = sec, nanosec
-        msg.pose = matrix_to_pose_msg(self.odom, msg.header, None).pose
-        return msg
+        out = []
+        for f in ODOM_AT:
+            sec, nanosec = divmod(self.stamp - PERIOD_NS + round(f * PERIOD_NS), 1_000_000_000)
+            msg = Odometry(header=Header(frame_id=ODOM_FRAME), child_frame_id=SENSOR_FRAME)
+            msg.header.stamp.sec, msg.header.stamp.nanosec = sec, nanosec
+            msg.pose = matrix_to_pose_msg(extrapolate(before, self.odom, f - 1.0), msg.header, None).pose
+            out.append(msg)
+        return out
 
     def tracked(self, since: int) -> int:
         """The scans sent from the `since`-th on published in state tracking so far."""
