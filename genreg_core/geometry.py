@@ -13,8 +13,7 @@ from __future__ import annotations
 
 import numpy as np
 import torch
-from scipy.linalg import fractional_matrix_power
-from scipy.spatial.transform import Rotation
+from scipy.spatial.transform import RigidTransform, Rotation
 
 from genreg_core import kernels
 
@@ -53,13 +52,14 @@ def invert_transform(T: ArrayLike) -> ArrayLike:
 
 def extrapolate(T_prev: np.ndarray, T_last: np.ndarray, ratio: float) -> np.ndarray:
     """Constant velocity: `T_last` moved on by the motion from `T_prev` to it (T_prev^-1 T_last, the same
-    screw motion: scipy's fractional_matrix_power) taken `ratio` times; 0 gives T_last, 1 repeats the
-    motion, -1 gives T_prev (between -1 and 0: the screw interpolation of the two). Both poses map the same moving frame into the same fixed one (T_map_scan of two scans). Their
+    screw motion: its exponential coordinates, scipy's `RigidTransform.as_exp_coords`, scaled) taken `ratio`
+    times; 0 gives T_last, 1 repeats the motion, -1 gives T_prev (between -1 and 0: the screw interpolation of
+    the two). Both poses map the same moving frame into the same fixed one (T_map_scan of two scans). Their
     rotations are taken as the nearest rotations (scipy's `Rotation.from_matrix`), so the result is rigid
     however many poses were predicted from predictions (an ICP's pose drifts off orthonormal by ~1e-5)."""
     prev, last = rigid(T_prev), rigid(T_last)
-    step = np.real(fractional_matrix_power(invert_transform(prev) @ last, float(ratio)))
-    return rigid(last @ step)
+    motion = RigidTransform.from_matrix(invert_transform(prev) @ last).as_exp_coords()
+    return rigid(last @ RigidTransform.from_exp_coords(float(ratio) * motion).as_matrix())
 
 
 def rigid(T: np.ndarray) -> np.ndarray:
