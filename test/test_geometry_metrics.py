@@ -165,7 +165,7 @@ def test_extrapolate_goes_on_along_a_constant_twist():
     xi[:3, :3] = [[0.0, -w[2], w[1]], [w[2], 0.0, -w[0]], [-w[1], w[0], 0.0]]
     xi[:3, 3] = v
     pose = [T0 @ expm(t * xi) for t in (1.0, 2.0)]
-    for r in (0.0, 0.5, 1.0, 2.5):
+    for r in (0.0, 0.5, 1.0, 2.0, 2.5, -0.3, -1.0):  # whole motions (a matrix power), fractions, interpolation
         np.testing.assert_allclose(extrapolate(pose[0], pose[1], r), T0 @ expm((2.0 + r) * xi), atol=1e-9)
     # standing still: the pose stays, whatever the ratio
     np.testing.assert_allclose(extrapolate(pose[1], pose[1], 3.0), pose[1], atol=1e-12)
