@@ -65,15 +65,18 @@ class Odometry:
             old = bisect.bisect_left(self._stamps, self._stamps[-1] - self.keep_ns)
             del self._stamps[:old], self._poses[:old]
 
-    def at(self, stamp: int) -> OdometryPose | None:
+    def at(self, stamp: int, child: str | None = None) -> OdometryPose | None:
         """The pose at `stamp` (ns): interpolated between the kept poses around it, or the newest moved on by
         the last two's motion for at most `reach_ns` after it; None before the oldest, beyond the reach, between
-        two poses more than `GAP_NS` apart, or with fewer than two poses kept (one when `stamp` is its own)."""
+        two poses more than `GAP_NS` apart, with fewer than two poses kept (one when `stamp` is its own), or when
+        the kept odometry tracks another frame than `child` (if given)."""
         with self._lock:
-            stamps, poses, (frame, child) = self._stamps, self._poses, self._frames
+            stamps, poses, (frame, kept) = self._stamps, self._poses, self._frames
+            if child is not None and kept != child:
+                return None
             k = bisect.bisect_left(stamps, stamp)
             if k < len(stamps) and stamps[k] == stamp:
-                return OdometryPose(poses[k], frame, child)
+                return OdometryPose(poses[k], frame, kept)
             if len(stamps) < 2 or k == 0 or stamp > stamps[-1] + self.reach_ns:
                 return None
             k = min(k, len(stamps) - 1)  # after the newest: the last two
@@ -81,15 +84,13 @@ class Odometry:
         if b - a > GAP_NS:
             return None
         # A (A^-1 B)^s, s = (stamp - a) / (b - a): `extrapolate` from B by s - 1 of the motion from A to B
-        return OdometryPose(extrapolate(A, B, (stamp - b) / (b - a)), frame, child)
+        return OdometryPose(extrapolate(A, B, (stamp - b) / (b - a)), frame, kept)
 
     def motion(self, start: int, end: int, child: str) -> np.ndarray | None:
         """How the frame `child` moved from stamp `start` to stamp `end` (ns): T_child(start)_child(end), or None
         when the odometry does not cover both stamps or tracks another frame."""
-        a, b = self.at(start), self.at(end)
-        if a is None or b is None or a.child != child or b.child != child:
-            return None
-        return invert_transform(a.T) @ b.T
+        a, b = self.at(start, child), self.at(end, child)
+        return None if a is None or b is None else invert_transform(a.T) @ b.T
 
     @property
     def child(self) -> str:

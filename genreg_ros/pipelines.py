@@ -242,11 +242,11 @@ class Pipeline(ABC):
                             f"< warn_confidence {c.warn_confidence} (fitness {result.fitness:.2f})")
         ctx.tracker.record(result.transformation, pair.source_stamp, generation, time.monotonic(),
                            continues=motion_continues(start.origin, jumped), placed=verdict.jumped)
-        odom = ctx.tracker.odometry.at(pair.source_stamp) if c.map.odometry else None
+        # the odometry at the stamp again: messages that came meanwhile may now bracket it
+        odom = ctx.tracker.odometry.at(pair.source_stamp, pair.source.frame) if c.map.odometry else None
         return Publication(status, Outputs(header, prepared.source, pair.source.frame, result, latency,
                                            prepared.decode_s, figures(prepared, result, *times),
-                                           verdict.low_confidence, registered_decoded, prepared.base_T_source,
-                                           odom if odom is not None and odom.child == pair.source.frame else None))
+                                           verdict.low_confidence, registered_decoded, prepared.base_T_source, odom))
 
     def _unanswered(self, pair: CloudPair, counter: Literal["dropped", "failed"], reason: str,
                     text: str) -> Publication:
