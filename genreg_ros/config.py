@@ -183,6 +183,15 @@ class MapParams:
                              "map to odometry frame transform at its stamp on odom_transform (and on /tf with "
                              "publish_tf, instead of the map to the localised frame, as REP-105 asks).",
                              start_up=True)
+    transform_tolerance: float = setting(0.2, "With map.odometry: each map to odometry frame transform is stamped "
+                                         "this long after the scan's stamp (the time until which it holds, as "
+                                         "AMCL's transform_tolerance; never at or before the one published before "
+                                         "it), s.", low=0.0, high=10.0, start_up=True)
+    transform_publish_period: float = setting(0.2, "With map.odometry: once no map to odometry frame transform has "
+                                              "been published for this long (a missed or superseded scan, a silent "
+                                              "sensor), the last one is published again, stamped on by the time "
+                                              "since, until a reset, s; 0: only with each published pose.",
+                                              low=0.0, high=60.0, start_up=True)
     localization: LocalizationConfig = setting(LocalizationConfig(), "MapLocalizer's settings (the core's "
                                                "defaults), read when the node starts.", start_up=True)
 

@@ -71,6 +71,7 @@ from rclpy.parameter import Parameter
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from rclpy.subscription import MessageInfo, Subscription
 from rclpy.task import Future
+from rclpy.timer import Timer
 from sensor_msgs.msg import PointCloud2
 from std_msgs.msg import Header
 from std_srvs.srv import Trigger
@@ -83,7 +84,7 @@ from genreg_ros.conversions import msg_to_matrix, stamp_error, stamp_ns
 from genreg_ros.diagnostics import DOCS, InputWatch, Reporter, Stats, Watched, build_status
 from genreg_ros.intake import CloudPair, FixedTarget, Intake
 from genreg_ros.pipelines import Context, Pipeline, make_pipeline
-from genreg_ros.publication import Publication, Publishers, Statuses
+from genreg_ros.publication import MapToOdom, Publication, Publishers, Statuses
 from genreg_ros.registrar import LoadError, Registering, close_registrars, load_registrars
 from genreg_ros.sync import SOURCE, TARGET, Handover, PairSync
 from genreg_ros.tracking import Tracker
@@ -128,6 +129,7 @@ class RegisterNode(LifecycleNode):
         self._workers: list[threading.Thread] = []
         self._publisher: threading.Thread | None = None
         self._outputs: Publishers | None = None
+        self._odom_timer: Timer | None = None  # repeats the last map -> odom (map.odometry)
         self._subs: dict[str, Subscription] = {}
         self._startup_error = ""
         self.finalized = Future()  # done after the shutdown transition (main() then exits)
@@ -185,7 +187,12 @@ class RegisterNode(LifecycleNode):
             if not c.autostart:  # with autostart, main() prints it as the one start-up error line
                 self.get_logger().error(f"configure failed: {exc}")
             return FAILURE
-        self._outputs = Publishers(self, c.qos.publisher_reliability, self._stats, tf)
+        map_to_odom = MapToOdom(round(1e9 * c.map.transform_tolerance), c.map.transform_publish_period) \
+            if c.map.odometry else None
+        self._outputs = Publishers(self, c.qos.publisher_reliability, self._stats, tf, map_to_odom)
+        if map_to_odom is not None and map_to_odom.period > 0.0:  # steady: repeats go on when sim time stalls
+            self._odom_timer = self.create_timer(map_to_odom.period / 4, self._repeat_map_to_odom,
+                                                 clock=Clock(clock_type=ClockType.STEADY_TIME))
         self._intake.use(self._pipeline.pairing(c))  # latest_target with the file's cloud, if any
         self._reset_state("configure", count=False)
         self._handover = Handover(len(self._registrars))
@@ -266,10 +273,13 @@ class RegisterNode(LifecycleNode):
         self._handover.outbox.close()
         if self._publisher is not None:
             self._publisher.join(timeout=10.0)
+        if self._odom_timer is not None:
+            self.destroy_timer(self._odom_timer)
         if self._outputs is not None:
             self._outputs.destroy()
         close_registrars(self._registrars)
         self._workers, self._publisher, self._outputs, self._registrars, self._pipeline = [], None, None, [], None
+        self._odom_timer = None
         self._reset_state("cleanup", count=False)
 
     def _tf_broadcaster(self) -> TransformBroadcaster:
@@ -297,6 +307,8 @@ class RegisterNode(LifecycleNode):
         self._tracker.reset()
         if self._pipeline is not None:
             self._pipeline.reset()
+        if self._outputs is not None:
+            self._outputs.forget_map_to_odom()
         self._unanswered(self._handover.clear(), "reset", f"a waiting pair was discarded ({why})")
         if count:
             self._stats.event("time_jump" if why.startswith("time jump") else "reset")
@@ -391,6 +403,10 @@ class RegisterNode(LifecycleNode):
             taken = handover.take(timeout=0.5)
             if taken is not None:
                 handover.outbox.done(taken[1], pipeline.process(taken[0]))
+
+    def _repeat_map_to_odom(self) -> None:
+        if self.state == "active":
+            self._outputs.repeat_map_to_odom()
 
     def _publish_diagnostics(self) -> None:
         c, snap, now, state = self._config, self._stats.snapshot(), time.monotonic(), self.state

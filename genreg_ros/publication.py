@@ -15,6 +15,7 @@ they overlap the next registration.
 
 from __future__ import annotations
 
+import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -31,7 +32,7 @@ from std_msgs.msg import Header
 
 from genreg_core.geometry import invert_transform
 from genreg_ros.config import NodeConfig
-from genreg_ros.conversions import matrix_to_msg, matrix_to_pose_msg, split_ns
+from genreg_ros.conversions import matrix_to_msg, matrix_to_pose_msg, split_ns, stamp_ns
 from genreg_ros.diagnostics import Reporter, Stats
 from genreg_ros.intake import CloudPair
 from genreg_ros.odometry import OdometryPose
@@ -123,16 +124,53 @@ class Statuses:
         return DiagnosticArray(header=header, status=[status])
 
 
+class MapToOdom:
+    """The map -> odometry frame transform as published (map.odometry; `odom_transform` and /tf): one per
+    published pose, stamped `tolerance_ns` after the scan's stamp (the time until which it holds, as AMCL's
+    transform_tolerance), and, once none was sent for `period` s (0: never), the last one again, stamped on by
+    the time since it was sent (steady clock: the scans' own clock, whatever the node's), so that tf lookups go on
+    between scans and over missed ones. Stamps only grow (tf warns of a repeated stamp); `forget` (a reset)
+    stops the repeats until the next pose. Pure; the caller serialises its calls."""
+
+    def __init__(self, tolerance_ns: int, period: float) -> None:
+        self.tolerance_ns, self.period = tolerance_ns, period
+        self._last: TransformStamped | None = None
+        self._stamp_ns = -1  # of the last one sent
+        self._sent_at = 0.0  # when it was sent (monotonic s)
+
+    def fresh(self, msg: TransformStamped, now: float) -> TransformStamped:
+        """A published pose's transform (stamped at its scan), stamped as sent at monotonic `now`."""
+        return self._send(msg, stamp_ns(msg.header) + self.tolerance_ns, now)
+
+    def again(self, now: float) -> TransformStamped | None:
+        """The last transform again if none was sent for `period` s by monotonic `now`, else None."""
+        if self._last is None or self.period <= 0.0 or now - self._sent_at < self.period:
+            return None
+        return self._send(self._last, self._stamp_ns + round(1e9 * (now - self._sent_at)), now)
+
+    def forget(self) -> None:
+        self._last = None
+
+    def _send(self, msg: TransformStamped, stamp: int, now: float) -> TransformStamped:
+        sec, nanosec = split_ns(max(stamp, self._stamp_ns + 1))
+        out = TransformStamped(header=Header(stamp=Time(sec=sec, nanosec=nanosec), frame_id=msg.header.frame_id),
+                               child_frame_id=msg.child_frame_id, transform=msg.transform)
+        self._last, self._stamp_ns, self._sent_at = out, stamp_ns(out.header), now
+        return out
+
+
 class Publishers:
     """The node's per-pair outputs (lifecycle publishers, QoS depth 5 with `reliability`) and tf."""
 
     def __init__(self, node: LifecycleNode, reliability: str, stats: Stats,
-                 tf: TransformBroadcaster | None = None) -> None:
+                 tf: TransformBroadcaster | None = None, map_to_odom: MapToOdom | None = None) -> None:
         qos = QoSProfile(depth=5, reliability=ReliabilityPolicy[reliability.upper()])
         self.pubs = {name: node.create_lifecycle_publisher(kind, name, qos) for name, kind in OUTPUTS}
         self._node = node
         self._stats = stats
         self._tf = tf
+        self._map_to_odom = map_to_odom or MapToOdom(0, 0.0)
+        self._odom_lock = threading.Lock()  # the publisher thread's fresh map -> odom, the node's timer's repeats
 
     def run(self, outbox: InOrder, config: Callable[[], NodeConfig], report: Reporter) -> None:
         """The publisher thread: publish each publication of `outbox`, in order, until it closes. An exception
@@ -167,16 +205,33 @@ class Publishers:
         self.pubs["aligned_cloud"].publish(aligned)
         self.pubs["transform"].publish(transform)
         self.pubs["pose"].publish(pose)
-        if odom is not None:
-            self.pubs["odom_transform"].publish(odom)
-        if self._tf is not None:  # with odometry, map -> odom (odom -> base is the odometry's)
-            self._tf.sendTransform(transform if odom is None else odom)
+        if odom is not None:  # with odometry, map -> odom on /tf (odom -> base is the odometry's)
+            with self._odom_lock:
+                self._send_odom(self._map_to_odom.fresh(odom, time.monotonic()))
+        elif self._tf is not None:
+            self._tf.sendTransform(transform)
         if generated:
             self.pubs["generated_cloud"].publish(xyz_to_msg(header, result.source_generated))
         t2 = time.perf_counter()
         self._stats.ok(job.latency, job.overhead + (t2 - t0),
                        {**job.timings, "encode_ms": 1e3 * (t1 - t0), "publish_ms": 1e3 * (t2 - t1)},
                        job.low_confidence)
+
+    def repeat_map_to_odom(self) -> None:
+        """The last map -> odom transform again, if none was published for the period (`MapToOdom.again`)."""
+        with self._odom_lock:
+            if (odom := self._map_to_odom.again(time.monotonic())) is not None:
+                self._send_odom(odom)
+
+    def forget_map_to_odom(self) -> None:
+        """No more repeats until the next published pose (a reset forgot the pose)."""
+        with self._odom_lock:
+            self._map_to_odom.forget()
+
+    def _send_odom(self, odom: TransformStamped) -> None:
+        self.pubs["odom_transform"].publish(odom)
+        if self._tf is not None:
+            self._tf.sendTransform(odom)
 
     def destroy(self) -> None:
         for pub in self.pubs.values():

@@ -52,7 +52,7 @@ from genreg_core.data.lidar_world import (
 )
 from genreg_core.data.synthetic_lidar import DRIVER_POINT
 from genreg_ros.config import CONFIG_DIR
-from genreg_ros.conversions import msg_to_matrix
+from genreg_ros.conversions import msg_to_matrix, stamp_ns
 from genreg_ros.pointcloud2 import array_to_msg, read_points
 from genreg_ros.tracking import TRACKED
 
@@ -491,16 +491,20 @@ def test_a_tilted_sensor_localises_its_base(tilted):
 # --------------------------------------------------------------------------- odometry (map.odometry)
 ODOM = "odom"
 ODOM_ERROR = sensor_pose(0.02, -0.01, 0.0, np.radians(0.3))  # the odometry's error per scan driven (drift)
+TOLERANCE_NS = 200_000_000  # map.transform_tolerance's default: map -> odom stamped 0.2 s after its scan
+REPEAT_S = 1.0  # map.transform_publish_period here: the last map -> odom again after 1 s without one
 
 
 @pytest.fixture(scope="module")
-def odometric(ros_namespace, campus, tmp_path_factory) -> tuple[Run, dict[tuple[int, int], np.ndarray], list]:
+def odometric(ros_namespace, campus, tmp_path_factory) -> tuple[Run, dict[tuple[int, int], np.ndarray], list, float]:
     """The node with map.odometry: odometry of the LiDAR (child frame velodyne) in frame odom, drifting by
     `ODOM_ERROR` per scan driven, sent at each scan's stamp just before the scan. The vehicle stands on the
-    southern street until placed and tracked, then drives east speeding up (0.3 to 2.1 m per scan). Returns
-    what the node answered, the true T_map_odom at each scan's stamp and the odom_transform messages."""
+    southern street until placed and tracked, then drives east speeding up (0.3 to 2.1 m per scan); then no
+    scan comes for 3.5 s, the node is reset and 2.5 s pass. Returns what the node answered, the true T_map_odom
+    at each scan's stamp, the odom_transform messages with their arrival (monotonic s) and the reset's time."""
     world, map_path = campus
-    params = {**PARAMS, "target_file": str(map_path), "target_frame": MAP_FRAME_ID, "map.odometry": "true"}
+    params = {**PARAMS, "target_file": str(map_path), "target_frame": MAP_FRAME_ID, "map.odometry": "true",
+              "map.transform_publish_period": str(REPEAT_S)}
     south = street_poses(world)["south"]
     xs = 6.0 + np.cumsum(0.3 * np.arange(1, 8))
     poses = {"start": [south(6.0)] * 2, "drive": [south(x) for x in xs]}
@@ -512,7 +516,10 @@ def odometric(ros_namespace, campus, tmp_path_factory) -> tuple[Run, dict[tuple[
     def also(h) -> None:
         held["odom_pub"] = h.helper.create_publisher(Odometry, "odom", QoSProfile(
             depth=50, reliability=ReliabilityPolicy.RELIABLE))
-        h.helper.create_subscription(TransformStamped, "odom_transform", h._rec(held["odom_tf"]),
+        def arrived(msg: TransformStamped) -> None:
+            with h.lock:
+                held["odom_tf"].append((time.monotonic(), msg))
+        h.helper.create_subscription(TransformStamped, "odom_transform", arrived,
                                      QoSProfile(depth=STATUS_DEPTH, reliability=ReliabilityPolicy.RELIABLE))
 
     def send_odometry(header, scan: Scan) -> None:
@@ -535,17 +542,24 @@ def odometric(ros_namespace, campus, tmp_path_factory) -> tuple[Run, dict[tuple[
         stream.odometry = send_odometry
         stream.stand(scans["start"], "start", lambda: stream.registered("start", "tracking") >= 2, 60.0)
         stream.drive(scans["drive"], "drive")
+        stream.settle()
+        time.sleep(3.5)  # no scan: the last map -> odom is repeated
+        response = stream.h.call(Trigger, "reset")
+        assert response.success, response.message
+        reset_at = time.monotonic()
+        time.sleep(2.5)  # reset: no more repeats
     with stream.h.lock:
         odom_tf = list(held["odom_tf"])
-    return stream.run, truth, odom_tf
+    return stream.run, truth, odom_tf, reset_at
 
 
 def test_odometry_moves_the_tracked_pose_and_gives_map_to_odom(odometric):
     """With map.odometry the scan after the placement is tracked from it moved by the odometry (no second
     placement: initial_guess odometry, jumped false), and so is every later one while the vehicle speeds up;
-    every published pose is right, and each comes with the map -> odom transform at its stamp (odom_transform:
-    parent map, child odom), within 2 deg / 25 cm of the drifting odometry's true frame."""
-    run, truth, odom_tf = odometric
+    every published pose is right, and each comes with the map -> odom transform of its stamp (odom_transform:
+    parent map, child odom, stamped transform_tolerance later), within 2 deg / 25 cm of the drifting odometry's
+    true frame."""
+    run, truth, odom_tf, _ = odometric
     start = answered(run, "start")
     (first, status), later = start[0], start[1:] + answered(run, "drive")
     assert status["localization"] == "global" and status["initial_guess"] == "none", status
@@ -556,11 +570,35 @@ def test_odometry_moves_the_tracked_pose_and_gives_map_to_odom(odometric):
         assert status["published"] == "true" and status["jumped"] == "false", status
         assert right(run, sent), (sent.phase, pose_error(run, sent), status)
     published = {s.key for s in run.sent if s.key in run.poses}
-    by_stamp = {(m.header.stamp.sec, m.header.stamp.nanosec): m for m in odom_tf}
-    assert set(by_stamp) == published, (sorted(by_stamp), sorted(published))
+    by_stamp = {divmod(stamp_ns(m.header) - TOLERANCE_NS, 1_000_000_000): m for _, m in odom_tf}
+    assert published <= set(by_stamp), (sorted(by_stamp), sorted(published))
+    by_stamp = {k: m for k, m in by_stamp.items() if k in published}
     for key, msg in by_stamp.items():
         assert (msg.header.frame_id, msg.child_frame_id) == (MAP_FRAME_ID, ODOM), msg
         re_, te = errors(msg_to_matrix(msg), truth[key])
         assert re_ < MAX_RE and te < MAX_TE, (key, re_, te)
     drifted = [np.linalg.norm(truth[k][:3, 3] - truth[min(truth)][:3, 3]) for k in by_stamp]
     assert max(drifted) > 0.05  # the odometry frame drifted in the map: the transform followed it
+
+
+def test_the_last_map_to_odom_is_repeated_while_no_pose_comes_until_a_reset(odometric):
+    """With no scan for 3.5 s the last map -> odom is published again every transform_publish_period (1 s), the
+    same transform stamped on by the time since it was sent (tf lookups go on between scans), stamps growing;
+    after the reset service none comes."""
+    run, _, odom_tf, reset_at = odometric
+    published = {s.key for s in run.sent if s.key in run.poses}
+    last_key = max(published)
+    fresh = [k for k, (_, m) in enumerate(odom_tf) if stamp_ns(m.header) == 10**9 * last_key[0] + last_key[1]
+             + TOLERANCE_NS]
+    assert len(fresh) == 1, "the last pose's map -> odom"
+    (sent_at, last), repeats = odom_tf[fresh[0]], odom_tf[fresh[0] + 1:]
+    before = [(t, m) for t, m in repeats if t < reset_at]
+    assert 2 <= len(before) <= 4, [t - sent_at for t, _ in repeats]  # 3.5 s without a pose, one a second
+    previous_t, previous_ns = sent_at, stamp_ns(last.header)
+    for t, m in before:
+        assert (m.header.frame_id, m.child_frame_id, m.transform) == (last.header.frame_id, last.child_frame_id,
+                                                                      last.transform)
+        assert REPEAT_S - 0.05 < t - previous_t < REPEAT_S + 0.6, t - previous_t
+        assert abs(1e-9 * (stamp_ns(m.header) - previous_ns) - (t - previous_t)) < 0.25  # stamped on by the time
+        previous_t, previous_ns = t, stamp_ns(m.header)
+    assert not [t for t, _ in repeats if t > reset_at + 0.3], "repeated after the reset"

@@ -1,16 +1,21 @@
-"""register_node's odometry (`genreg_ros.odometry`) and tracking with it (`genreg_ros.tracking`): pure, no
-rclpy. The truth is a constant-twist motion, T_odom_base(t) = expm(t xi) (scipy), whose screw interpolation
+"""register_node's odometry (`genreg_ros.odometry`), tracking with it (`genreg_ros.tracking`) and the
+map -> odom transform it publishes (`genreg_ros.publication.MapToOdom`): no node. The truth is a constant-twist motion, T_odom_base(t) = expm(t xi) (scipy), whose screw interpolation
 is exact, and a second motion that turns and speeds up, where a constant velocity is not."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
+from builtin_interfaces.msg import Time
+from geometry_msgs.msg import TransformStamped
 from scipy.linalg import expm
+from std_msgs.msg import Header
 
 from genreg_core.geometry import invert_transform
 from genreg_ros.config import NodeConfig
+from genreg_ros.conversions import stamp_ns
 from genreg_ros.odometry import GAP_NS, Odometry
+from genreg_ros.publication import MapToOdom
 from genreg_ros.tracking import TRACKED, Tracker, motion_continues
 
 MS = 1_000_000  # ns
@@ -120,3 +125,33 @@ def test_map_odometry_needs_map_mode():
     with pytest.raises(ConfigError, match="map.odometry needs map.enabled"):
         NodeConfig(map=MapParams(odometry=True))
     assert NodeConfig(map=MapParams(enabled=True, odometry=True)).map.odometry
+
+
+def map_to_odom(stamp_ms: int, x: float) -> TransformStamped:
+    msg = TransformStamped(header=Header(stamp=Time(sec=stamp_ms // 1000, nanosec=(stamp_ms % 1000) * MS),
+                                         frame_id="map"), child_frame_id="odom")
+    msg.transform.translation.x = x
+    return msg
+
+
+def test_map_to_odom_is_post_dated_and_repeated_until_forgotten():
+    m = MapToOdom(200 * MS, 0.5)  # transform_tolerance 0.2 s, transform_publish_period 0.5 s
+    assert m.again(100.0) is None  # nothing to repeat yet
+    first = m.fresh(map_to_odom(10_000, 1.5), now=100.0)
+    assert stamp_ns(first.header) == 10_200 * MS
+    assert (first.header.frame_id, first.child_frame_id, first.transform.translation.x) == ("map", "odom", 1.5)
+    assert m.again(100.4) is None  # sent 0.4 s ago
+    repeated = m.again(100.6)
+    assert stamp_ns(repeated.header) == 10_800 * MS and repeated.transform == first.transform
+    assert m.again(100.9) is None  # the repeat counts as sent
+    assert stamp_ns(m.again(101.25).header) == 11_450 * MS
+    # a pose of a scan stamped before the last repeat's stamp minus the tolerance: one ns after it, never before
+    late = m.fresh(map_to_odom(11_000, 2.0), now=101.3)
+    assert stamp_ns(late.header) == 11_450 * MS + 1 and late.transform.translation.x == 2.0
+    assert stamp_ns(m.fresh(map_to_odom(11_500, 2.5), now=101.35).header) == 11_700 * MS
+    assert m.again(101.9).transform.translation.x == 2.5  # the newest one is repeated
+    m.forget()
+    assert m.again(200.0) is None
+    never = MapToOdom(0, 0.0)  # transform_publish_period 0: only with each pose
+    assert stamp_ns(never.fresh(map_to_odom(5_000, 0.0), now=1.0).header) == 5_000 * MS
+    assert never.again(1e6) is None
