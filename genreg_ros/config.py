@@ -180,8 +180,9 @@ class MapParams:
                              "frame): tracking starts each scan from the last accepted pose moved by the odometry "
                              "between the two scans' stamps (registration_status initial_guess: odometry; before "
                              "predict_motion, and also right after a placement), and each published pose gives the "
-                             "map to odometry frame transform at its stamp on odom_transform (and on /tf with "
-                             "publish_tf, instead of the map to the localised frame, as REP-105 asks).",
+                             "map to odometry frame transform of its stamp on odom_transform (and on /tf with "
+                             "publish_tf, instead of the map to the localised frame, as REP-105 asks; see "
+                             "transform_tolerance and transform_publish_period).",
                              start_up=True)
     transform_tolerance: float = setting(0.2, "With map.odometry: each map to odometry frame transform is stamped "
                                          "this long after the scan's stamp (the time until which it holds, as "

@@ -18,8 +18,10 @@ Topics (relative names, remap them):
 - out `registration_status` (diagnostic_msgs/DiagnosticArray, header = source stamp and target frame): one
   status per pair formed: a result's confidence, fitness, inlier RMSE (m) and which start won, or why the
   pair was not registered (superseded, discarded, failed; `genreg_ros.publication`);
-- out `odom_transform` (TransformStamped, with map.odometry): the target (map) frame to the odometry frame at
-  each published pose's stamp (REP-105; on /tf instead of `transform` with publish_tf);
+- out `odom_transform` (TransformStamped, with map.odometry): the target (map) frame to the odometry frame of
+  each published pose, post-dated by map.transform_tolerance, and the last one again every
+  map.transform_publish_period while no pose comes (`genreg_ros.publication.MapToOdom`; REP-105; on /tf
+  instead of `transform` with publish_tf);
 - out `generated_cloud` (PointCloud2, if publish_generated): the network's generated source (A_g) in the
   target frame;
 - out `/diagnostics` (diagnostic_msgs/DiagnosticArray): latency, fitness, counts and their reasons.
