@@ -193,6 +193,10 @@ class MapParams:
                                               "sensor), the last one is published again, stamped on by the time "
                                               "since, until a reset, s; 0: only with each published pose.",
                                               low=0.0, high=60.0, start_up=True)
+    publish_map: bool = setting(True, "With target_file: publish the map as the node localises in it (the file's "
+                                "points after localization.map_voxel, in target_frame) once on map_cloud, reliable "
+                                "and transient local, so that RViz and subscribers that join later get it.",
+                                start_up=True)
     localization: LocalizationConfig = setting(LocalizationConfig(), "MapLocalizer's settings (the core's "
                                                "defaults), read when the node starts.", start_up=True)
 

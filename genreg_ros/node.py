@@ -191,7 +191,8 @@ class RegisterNode(LifecycleNode):
             return FAILURE
         map_to_odom = MapToOdom(round(1e9 * c.map.transform_tolerance), c.map.transform_publish_period) \
             if c.map.odometry else None
-        self._outputs = Publishers(self, c.qos.publisher_reliability, self._stats, tf, map_to_odom)
+        self._outputs = Publishers(self, c.qos.publisher_reliability, self._stats, tf, map_to_odom,
+                                   map_cloud=self._pipeline.map_cloud() is not None and c.map.publish_map)
         if map_to_odom is not None and map_to_odom.period > 0.0:  # steady: repeats go on when sim time stalls
             self._odom_timer = self.create_timer(map_to_odom.period / 4, self._repeat_map_to_odom,
                                                  clock=Clock(clock_type=ClockType.STEADY_TIME))
@@ -230,7 +231,14 @@ class RegisterNode(LifecycleNode):
             f"sync {self._intake.mode} slop {c.sync.slop} s, subscription QoS source {c.qos.reliability}, target {target} "
             f"{c.qos.target_durability}; listening on {self._subs[SOURCE].topic_name}, "
             f"{pipeline.describe(self._subs[TARGET].topic_name if TARGET in self._subs else '')}")
-        return super().on_activate(state)
+        done = super().on_activate(state)  # enables the lifecycle publishers
+        if "map_cloud" in self._outputs.pubs:
+            points, frame = pipeline.map_cloud()
+            t0 = time.perf_counter()
+            self._outputs.publish_map(points, frame, self.get_clock().now().to_msg())
+            self.get_logger().info(f"map published on {self._outputs.pubs['map_cloud'].topic_name} (latched): "
+                                   f"{len(points)} points in frame '{frame}' in {time.perf_counter() - t0:.2f} s")
+        return done
 
     def _cloud_subscription(self, topic: str, qos: QoSProfile) -> Subscription:
         """The `<topic>_cloud` subscription (serialised messages: `from_cdr` deserialises them 20x faster than

@@ -156,6 +156,10 @@ class Pipeline(ABC):
         """Localise the next scan without a guess; False if this pipeline has no such thing (not map mode)."""
         return False
 
+    def map_cloud(self) -> tuple[np.ndarray, str] | None:
+        """The map read from `target_file` as map mode localises in it and its frame (None: no such map)."""
+        return None
+
     def describe(self, target_topic: str) -> str:
         """What the node registers against, for its start-up log line."""
         if self.fixed is not None:
@@ -343,6 +347,12 @@ class MapPipeline(Pipeline):
         self._ctx.report.stats.event("relocalize")
         self._ctx.report.info(f"relocalize ({why}): the next scan is localised in the map without a guess")
         return True
+
+    def map_cloud(self) -> tuple[np.ndarray, str] | None:
+        if self.fixed is None or self._localizer is None:
+            return None
+        _, localizer, frame = self._localizer
+        return localizer.map, frame
 
     def describe(self, target_topic: str) -> str:
         return f"map mode: localising scans in the map, {super().describe(target_topic)}"

@@ -26,7 +26,7 @@ from builtin_interfaces.msg import Time
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from geometry_msgs.msg import PoseWithCovarianceStamped, TransformStamped
 from rclpy.lifecycle import LifecycleNode
-from rclpy.qos import QoSProfile, ReliabilityPolicy
+from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import PointCloud2
 from std_msgs.msg import Header
 
@@ -163,9 +163,13 @@ class Publishers:
     """The node's per-pair outputs (lifecycle publishers, QoS depth 5 with `reliability`) and tf."""
 
     def __init__(self, node: LifecycleNode, reliability: str, stats: Stats,
-                 tf: TransformBroadcaster | None = None, map_to_odom: MapToOdom | None = None) -> None:
+                 tf: TransformBroadcaster | None = None, map_to_odom: MapToOdom | None = None,
+                 map_cloud: bool = False) -> None:
         qos = QoSProfile(depth=5, reliability=ReliabilityPolicy[reliability.upper()])
         self.pubs = {name: node.create_lifecycle_publisher(kind, name, qos) for name, kind in OUTPUTS}
+        if map_cloud:  # latched, as maps are
+            self.pubs["map_cloud"] = node.create_lifecycle_publisher(PointCloud2, "map_cloud", QoSProfile(
+                depth=1, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL))
         self._node = node
         self._stats = stats
         self._tf = tf
@@ -216,6 +220,10 @@ class Publishers:
         self._stats.ok(job.latency, job.overhead + (t2 - t0),
                        {**job.timings, "encode_ms": 1e3 * (t1 - t0), "publish_ms": 1e3 * (t2 - t1)},
                        job.low_confidence)
+
+    def publish_map(self, points: np.ndarray, frame: str, stamp: Time) -> None:
+        """The map on map_cloud (created with `map_cloud`), once per activation."""
+        self.pubs["map_cloud"].publish(xyz_to_msg(Header(stamp=stamp, frame_id=frame), points))
 
     def repeat_map_to_odom(self) -> None:
         """The last map -> odom transform again, if none was published for the period (`MapToOdom.again`)."""

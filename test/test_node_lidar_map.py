@@ -34,7 +34,8 @@ import pytest
 from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import TransformStamped
 from nav_msgs.msg import Odometry
-from rclpy.qos import QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
+from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
+from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 from sensor_msgs.msg import PointCloud2
 from std_msgs.msg import Header
@@ -101,6 +102,7 @@ class Run:
     aligned: dict[tuple[int, int], PointCloud2]
     diagnostics: dict[str, str]
     log: str
+    map_cloud: PointCloud2 | None = None  # the latched map_cloud, as a subscriber that joins late gets it
 
 
 def driver_records(world: World, pose: np.ndarray, seed: int) -> np.ndarray:
@@ -261,7 +263,11 @@ def run(ros_namespace, campus, tmp_path_factory) -> Run:
         terrace = lambda: sum("localization" in stream.statuses().get(s.key, {}) for s in stream.sent
                               if s.phase == "terrace")
         stream.stand(scans["terrace"], "terrace", lambda: terrace() >= 2, 20.0)
-    return stream.run
+        maps: list[PointCloud2] = []  # subscribed only now: the node published the map long before
+        stream.h.helper.create_subscription(PointCloud2, "map_cloud", stream.h._rec(maps), QoSProfile(
+            depth=1, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL))
+        stream.h.wait(lambda: maps, 20.0, "the latched map_cloud")
+    return dataclasses.replace(stream.run, map_cloud=maps[0])
 
 
 def answered(run: Run, phase: str) -> list[tuple[Sent, dict[str, str]]]:
@@ -408,6 +414,21 @@ def test_published_covariances_are_valid(run):
             slides += 1
     if not slides:
         pytest.skip("no published pose named a rival in this run: the covariance of a slide was not checked")
+
+
+def test_the_map_is_latched_on_map_cloud(run, campus):
+    """The map the node localises in (the file voxelised at map_voxel 0.2 m) reaches a subscriber that joined
+    long after it was published: in the map frame, every published point within a voxel's diagonal of the
+    file's points and every file point within one of a published point (scipy's k-d tree)."""
+    _, map_path = campus
+    msg = run.map_cloud
+    assert msg is not None and msg.header.frame_id == MAP_FRAME_ID
+    published = read_points(msg).points.astype(np.float64)
+    file_points = np.asarray(o3d.io.read_point_cloud(str(map_path)).points)
+    assert 0.5 * len(file_points) < len(published) <= len(file_points)
+    diagonal = 0.2 * np.sqrt(3.0)
+    assert cKDTree(file_points).query(published)[0].max() < diagonal
+    assert cKDTree(published).query(file_points)[0].max() < diagonal
 
 
 def test_a_slide_along_the_terraced_street_is_named(run, campus):
