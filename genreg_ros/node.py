@@ -22,6 +22,8 @@ Topics (relative names, remap them):
   each published pose, post-dated by map.transform_tolerance, and the last one again every
   map.transform_publish_period while no pose comes (`genreg_ros.publication.MapToOdom`; REP-105; on /tf
   instead of `transform` with publish_tf);
+- out `map_cloud` (PointCloud2, map mode with target_file and map.publish_map): the map as localised in, once
+  at activation, reliable and transient local (latched);
 - out `generated_cloud` (PointCloud2, if publish_generated): the network's generated source (A_g) in the
   target frame;
 - out `/diagnostics` (diagnostic_msgs/DiagnosticArray): latency, fitness, counts and their reasons.
