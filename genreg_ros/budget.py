@@ -5,7 +5,8 @@ waits for a free worker first. `LatencyBudget.plan` looks at the pair's age when
 age plus the expected seconds of a full registration exceed `budget.latency`, the pair is registered with the
 light settings (`light_config`: no PDSAC modes, no further network passes, no guard ICP, no tight refinement
 stage, at most `budget.light_points` refinement points). A pair already older than the budget goes light.
-The expected seconds are a running mean of the recent full registrations (none yet: full); while pairs go
+The expected seconds are the `QUANTILE` of the last `WINDOW` full registrations (none yet: full), so that a
+pair that goes full finishes within the budget nine times in ten, not only on average; while pairs go
 light, a pair that is not late yet still goes full every `PROBE_S` seconds, so the expectation keeps up
 with the load. A light pair is counted (`light` in /diagnostics) and says so in
 its registration_status (`budget: light`). Pure Python, thread-safe.
@@ -15,11 +16,13 @@ from __future__ import annotations
 
 import threading
 import time
+from collections import deque
 from dataclasses import replace
 
 from genreg_core.config import RegistrationConfig
 
-SMOOTHING = 0.2  # weight of the newest full registration in the running mean of their seconds
+WINDOW = 20  # the recent full registrations whose seconds the expectation reads
+QUANTILE = 0.9  # the expectation: this quantile of their seconds
 PROBE_S = 10.0  # while pairs go light, one that is not late yet is registered in full this often, s: the
 # expectation follows the load back down
 
@@ -38,15 +41,22 @@ class LatencyBudget:
     long a full registration takes from the pairs registered in full."""
 
     def __init__(self) -> None:
-        self._full: float | None = None  # running mean of full registrations, s
+        self._full: deque[float] = deque(maxlen=WINDOW)  # the recent full registrations' seconds
         self._last_full = -1e9  # time.monotonic() of the last full registration's start
         self._light: tuple[RegistrationConfig, int, RegistrationConfig] | None = None  # (full, points, light)
         self._lock = threading.Lock()
 
     @property
     def expected_full(self) -> float | None:
-        """The running mean of the recent full registrations' seconds (None before the first)."""
-        return self._full
+        """The `QUANTILE` of the recent full registrations' seconds (None before the first)."""
+        with self._lock:
+            return self._expected()
+
+    def _expected(self) -> float | None:
+        if not self._full:
+            return None
+        ordered = sorted(self._full)
+        return ordered[min(len(ordered) - 1, int(QUANTILE * len(ordered)))]
 
     def plan(self, age: float, config: RegistrationConfig, budget: float, light_points: int
              ) -> tuple[bool, RegistrationConfig]:
@@ -56,7 +66,7 @@ class LatencyBudget:
         registrar's settings change (and travel to a worker) only when full and light alternate."""
         now = time.monotonic()
         with self._lock:
-            expected = self._full
+            expected = self._expected()
             late = budget > 0 and (age >= budget or (expected is not None and age + expected > budget
                                                      and now - self._last_full < PROBE_S))
             if not late:
@@ -72,4 +82,4 @@ class LatencyBudget:
         if light:
             return
         with self._lock:
-            self._full = seconds if self._full is None else (1 - SMOOTHING) * self._full + SMOOTHING * seconds
+            self._full.append(seconds)

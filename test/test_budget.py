@@ -40,6 +40,20 @@ def test_plan_is_full_until_a_pair_would_be_late():
     assert b.expected_full == 0.060
 
 
+def test_the_expectation_is_a_high_quantile_of_the_recent_full_registrations():
+    """Two slow registrations in the last twenty make a pair that would fit the mean go light: the budget holds
+    nine pairs in ten, not the average one; older registrations leave the window."""
+    b = LatencyBudget()
+    assert not b.plan(0.0, SCENE_REGISTRATION, 0.075, 1500)[0]  # a full registration starts now (no probe due)
+    for seconds in [0.040] * 18 + [0.090] * 2:
+        b.record(False, seconds)
+    assert np.mean([0.040] * 18 + [0.090] * 2) + 0.010 < 0.075  # the mean would fit
+    assert b.expected_full == 0.090 and b.plan(0.010, SCENE_REGISTRATION, 0.075, 1500)[0]
+    for _ in range(budget.WINDOW):
+        b.record(False, 0.040)
+    assert b.expected_full == 0.040 and not b.plan(0.010, SCENE_REGISTRATION, 0.075, 1500)[0]
+
+
 def test_a_full_probe_lets_the_expectation_follow_the_load_down(monkeypatch):
     b = LatencyBudget()
     b.record(False, 0.200)  # learnt under heavy load
