@@ -100,8 +100,9 @@ PHASES = ("start", "drive", "misclick", "kidnap", "walk")
 STANDING = ("start", "misclick", "kidnap")  # phases that stand until placed and tracked twice
 MISCLICK_M = 500.0  # the misclick phase's initialpose: this far east of the vehicle, m
 OPERATOR_OFF = (0.3, 5.0)  # the kidnap phase's initialpose: this far (m, to the robot's left) and turned (deg)
-STAND_SCANS = 5  # revolutions cast at a standing place (movers differ), sent in turn: the node, which takes the
-# newest scan when it is free, does not take the same one every time
+STAND_SCANS = 5  # revolutions cast at a standing place (movers differ), sent in a new random order each round:
+# the node, which takes the newest scan when it is free, does not take the same one every time (in turn, a
+# search of about five scan periods took the same scan again and again)
 NODE_PARAMS = {"diagnostics.period": "1.0"}  # config/genreg_lidar_map.yaml otherwise
 ODOM_FRAME = "odom"
 ODOM_SCALE = 1.02  # --odometry: the odometry's distances 2 % long
@@ -171,6 +172,7 @@ class Stream:
         self.stamp = time.time_ns() // PERIOD_NS * PERIOD_NS
         self.next_at = time.monotonic()
         self.odometry, self.odom = odometry, np.eye(4)  # T_odom_sensor, integrated from the true motion
+        self.rng = np.random.default_rng(0)  # the order of standing scans (`stand`)
 
     def publish(self, raw: bytes, truth: np.ndarray, phase: str) -> None:
         time.sleep(max(0.0, self.next_at - time.monotonic()))
@@ -210,10 +212,15 @@ class Stream:
                    status[s.stamp].get("localization") == "tracking" for s in self.sent[since:])
 
     def stand(self, raws: list[bytes], truths: np.ndarray, phase: str, timeout: float) -> None:
-        """Publish the phase's scans in turn until two are published in state tracking, or `timeout` s."""
+        """Publish the phase's scans, each round in a new order (`STAND_SCANS`), until two are published in state
+        tracking, or `timeout` s."""
         deadline, k, since = time.monotonic() + timeout, 0, len(self.sent)
+        order = np.arange(len(raws))
         while self.tracked(since) < 2 and time.monotonic() < deadline:
-            self.publish(raws[k % len(raws)], truths[k % len(truths)], phase)
+            if k % len(raws) == 0:
+                order = self.rng.permutation(len(raws))
+            i = order[k % len(raws)]
+            self.publish(raws[i], truths[i], phase)
             k += 1
 
     def drive(self, raws: list[bytes], truths: np.ndarray, phase: str) -> None:
