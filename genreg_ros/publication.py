@@ -129,8 +129,8 @@ class MapToOdom:
     published pose, stamped `tolerance_ns` after the scan's stamp (the time until which it holds, as AMCL's
     transform_tolerance), and, once none was sent for `period` s (0: never), the last one again, stamped on by
     the time since it was sent (steady clock: the scans' own clock, whatever the node's), so that tf lookups go on
-    between scans and over missed ones. Stamps only grow (tf warns of a repeated stamp); `forget` (a reset)
-    stops the repeats until the next pose. Pure; the caller serialises its calls."""
+    between scans and over missed ones. Stamps only grow (tf warns of a repeated stamp) until `forget` (a reset,
+    a time jump back), which also stops the repeats until the next pose. Pure; the caller serialises its calls."""
 
     def __init__(self, tolerance_ns: int, period: float) -> None:
         self.tolerance_ns, self.period = tolerance_ns, period
@@ -149,7 +149,7 @@ class MapToOdom:
         return self._send(self._last, self._stamp_ns + round(1e9 * (now - self._sent_at)), now)
 
     def forget(self) -> None:
-        self._last = None
+        self._last, self._stamp_ns = None, -1
 
     def _send(self, msg: TransformStamped, stamp: int, now: float) -> TransformStamped:
         sec, nanosec = split_ns(max(stamp, self._stamp_ns + 1))

@@ -152,6 +152,8 @@ def test_map_to_odom_is_post_dated_and_repeated_until_forgotten():
     assert m.again(101.9).transform.translation.x == 2.5  # the newest one is repeated
     m.forget()
     assert m.again(200.0) is None
+    # after a reset (e.g. the clock went back: a bag replayed again) stamps start afresh
+    assert stamp_ns(m.fresh(map_to_odom(1_000, 3.0), now=201.0).header) == 1_200 * MS
     never = MapToOdom(0, 0.0)  # transform_publish_period 0: only with each pose
     assert stamp_ns(never.fresh(map_to_odom(5_000, 0.0), now=1.0).header) == 5_000 * MS
     assert never.again(1e6) is None
