@@ -24,7 +24,9 @@ a 2 MB residual table). Here each problem is one pass of scalar code, with the f
   rotation-invariant point-pair features), `neighbour_max` (the edge convolution's max over neighbours);
   interact and generate (`model.genreg`): `first_index` (each point's best match, given its log weight),
   `neighbour_mix` (the generated point from the best match's neighbours).
-- Clouds (`preprocess`): `voxel_centroids` (each occupied voxel's centroid, the voxels by a hash table).
+- Clouds (`preprocess`): `voxel_centroids` (each occupied voxel's centroid, the voxels by a hash table);
+  grids (`score.grid_keys`): `cell_bounds`, `cell_keys` (the cells of a map of millions of points, without
+  its (N, 3) temporaries).
 - Scores and output (`score`, `prepare`): `plane_normals` (target normals; `plane_normals_about` about a known mean), `transform_rows` (the aligned
   full-resolution cloud); `copy_rows` (x, y, z out of a PointCloud2's records, `genreg_ros.pointcloud2`).
 
@@ -627,6 +629,38 @@ def voxel_centroids(points: np.ndarray, voxel: np.ndarray) -> np.ndarray:
     return out
 
 
+@njit(**_OPTIONS)
+def cell_bounds(points: np.ndarray, cell: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The lowest and the highest cell (3,) int64 of finite (N >= 1, 3) points on a grid of edge `cell[0]`
+    (in the points' dtype: numpy divides in that dtype): min and max of floor(p / cell) per axis, in one
+    pass."""
+    size = cell[0]
+    low = np.empty(3, dtype=np.int64)
+    high = np.empty(3, dtype=np.int64)
+    for a in range(3):
+        low[a] = high[a] = np.int64(math.floor(points[0, a] / size))
+    for i in range(1, points.shape[0]):
+        for a in range(3):
+            c = np.int64(math.floor(points[i, a] / size))
+            low[a] = min(low[a], c)
+            high[a] = max(high[a], c)
+    return low, high
+
+
+@njit(**_OPTIONS)
+def cell_keys(points: np.ndarray, cell: np.ndarray, low: np.ndarray, extent: np.ndarray) -> np.ndarray:
+    """One int64 key per point of its cell floor(p / cell[0]) (as `cell_bounds`) on the grid of `extent` cells
+    from `low`, x-major (`score.cell_key`), in one pass."""
+    size = cell[0]
+    keys = np.empty(points.shape[0], dtype=np.int64)
+    for i in range(points.shape[0]):
+        key = np.int64(0)
+        for a in range(3):
+            key = key * extent[a] + (np.int64(math.floor(points[i, a] / size)) - low[a])
+        keys[i] = key
+    return keys
+
+
 def compile_all() -> None:
     """Compile (or load from numba's cache) every kernel for the array types the pipeline passes, on tiny
     inputs: a cold compile takes about half a minute, a cached load about a second. `scripts/setup.sh` runs
@@ -656,6 +690,8 @@ def compile_all() -> None:
     weighted_sets(np.cumsum(weights, axis=1), weights, rng.random((3, 1, 4)))
     for dtype in (f32, f64):
         voxel_centroids(cloud[0].astype(dtype), np.array([0.1], dtype=dtype))
+        low, high = cell_bounds(cloud[0].astype(dtype), np.array([0.1], dtype=dtype))
+        cell_keys(cloud[0].astype(dtype), np.array([0.1], dtype=dtype), low, high - low + 1)
 
 
 if __name__ == "__main__":

@@ -160,10 +160,9 @@ def occupied_cells(points: np.ndarray, spacing: float) -> np.ndarray:
 
 def cells_of(points: np.ndarray, spacing: float, rows: bool = True) -> tuple[np.ndarray, np.ndarray | None]:
     """`occupied_cells` and, with `rows`, each point's row among them."""
-    cells = np.floor(points / spacing).astype(np.int64)
-    low, size, keys = grid_keys(cells)
+    low, size, keys = grid_keys(points, spacing)
     if keys is None:  # too large a grid for one int64 key per cell
-        found = np.unique(cells, axis=0, return_inverse=rows)
+        found = np.unique(np.floor(points / spacing).astype(np.int64), axis=0, return_inverse=rows)
         return (found[0], found[1].ravel()) if rows else (found, None)
     keys, inverse = np.unique(keys, return_inverse=True) if rows else (np.unique(keys), None)
     return np.stack([keys // (size[1] * size[2]), keys // size[2] % size[1], keys % size[2]], axis=1) + low, inverse

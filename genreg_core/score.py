@@ -97,7 +97,7 @@ class TargetIndex:
         grid's lowest cell (3,), its size in cells (3,) and its occupancy: a flag per cell by key (`grid_keys`)
         when the grid has at most `DENSE_CELLS` cells, else the sorted keys of the occupied ones."""
         if cell not in self._cells:
-            low, size, keys = grid_keys(np.floor(self.points / cell).astype(np.int64))
+            low, size, keys = grid_keys(self.points, cell)
             if keys is None:
                 raise ValueError(f"cells of {cell} m are too small for a target {size.tolist()} cells wide")
             total = int(np.prod(size))
@@ -153,14 +153,19 @@ class TargetIndex:
         return self._normals[rows]
 
 
-def grid_keys(cells: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
-    """Integer cells (N, 3, N >= 1) on the grid that bounds them: its lowest cell (3,), its size in cells (3,)
-    and one int64 key per cell (`cell_key`); keys None when the grid has 2^62 cells or more (no such key)."""
-    low = cells.min(axis=0)
-    size = cells.max(axis=0) - low + 1
+def grid_keys(points: np.ndarray, cell: float) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+    """The cells floor(p / cell) of finite (N >= 1, 3) points on the grid that bounds them: its lowest cell (3,),
+    its size in cells (3,) and one int64 key per point's cell (`cell_key`); keys None when the grid has 2^62
+    cells or more (no such key). Float32 points are divided in float32, as numpy would; compiled
+    (`kernels.cell_bounds`, `kernels.cell_keys`: a 3 M-point map without its (N, 3) temporaries)."""
+    points = np.asarray(points)
+    points = np.ascontiguousarray(points, dtype=points.dtype if points.dtype in (np.float32, np.float64) else np.float64)
+    edge = np.array([cell], dtype=points.dtype)
+    low, high = kernels.cell_bounds(points, edge)
+    size = high - low + 1
     if float(np.prod(size.astype(np.float64))) >= 2.0 ** 62:
         return low, size, None
-    return low, size, cell_key(cells - low, size)
+    return low, size, kernels.cell_keys(points, edge, low, size)
 
 
 def cell_key(offsets: np.ndarray, size: np.ndarray) -> np.ndarray:

@@ -26,7 +26,7 @@ from genreg_core.metrics import transform_errors
 from genreg_core.preprocess import voxel_downsample
 from genreg_core.registration import Registrar
 from genreg_core.result import TRACKING_CALIBRATION
-from genreg_core.score import overlap_score
+from genreg_core.score import grid_keys, overlap_score
 
 MAP_FRAMES = range(800, 1000, 10)  # redkitchen validation frames fused into the map
 SCANS = (805, 855, 925)  # scans between map frames
@@ -340,6 +340,26 @@ def test_cells_of_points_are_numpys_unique_cells_and_inverse(count, spacing, sca
     np.testing.assert_array_equal(got, cells)
     np.testing.assert_array_equal(got_rows, rows.ravel())
     np.testing.assert_array_equal(occupied_cells(points, spacing), cells)
+
+
+@settings(max_examples=60, deadline=None)
+@given(st.integers(1, 300), st.floats(0.01, 2.0), st.sampled_from([1.0, 1e3, 1e15]), st.sampled_from(["float32", "float64"]),
+       st.integers(0, 2**32 - 1))
+def test_grid_keys_are_numpys_floored_cells(count, cell, scale, dtype, seed):
+    """`grid_keys` (compiled, one pass) against numpy's floor of the points divided in their own dtype, with
+    points on the cells' edges (whole multiples of the edge) and a grid too large for one key per cell."""
+    rng = np.random.default_rng(seed)
+    points = rng.uniform(-scale, scale, (count, 3)).astype(dtype)
+    points[::3] = (np.round(points[::3] / cell) * cell).astype(dtype)  # on the edges
+    floored = np.floor(points / cell).astype(np.int64)
+    low, size, keys = grid_keys(points, cell)
+    np.testing.assert_array_equal(low, floored.min(axis=0))
+    np.testing.assert_array_equal(size, floored.max(axis=0) - floored.min(axis=0) + 1)
+    if float(np.prod(size.astype(np.float64))) >= 2.0 ** 62:
+        assert keys is None
+        return
+    offsets = floored - low
+    np.testing.assert_array_equal(keys, (offsets[:, 0] * size[1] + offsets[:, 1]) * size[2] + offsets[:, 2])
 
 
 @settings(max_examples=30, deadline=None)
