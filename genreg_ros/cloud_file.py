@@ -4,6 +4,11 @@
 Open3D's messages and RPly's (which RPly writes straight to stderr and which can quote the file) captured
 and discarded, so no content of the file reaches the log. Whatever is wrong is a `CloudFileError` with a
 one-line message that names the problem and never quotes the file.
+
+A fast path: a PCD file of PCL's uncompressed binary records (`DATA binary`, the form PCL's tools and most
+LiDAR mappers write maps in) whose x, y, z are single fields of 4- or 8-byte floats is read by numpy as a
+structured array of its records (`read_binary_pcd`: 0.2 s for a 9 M-point map, which Open3D reads in 1.0-1.6
+s), the same points as Open3D's (test: `test_cloud_file.py`).
 """
 
 from __future__ import annotations
@@ -55,8 +60,8 @@ def header_problem(suffix: str, head: bytes) -> str:
 
 
 def read_quietly(path: Path) -> tuple[np.ndarray, bool]:
-    """(points, whether the readers printed anything) of a PLY / PCD file read by Open3D, with its output
-    and RPly's captured and discarded."""
+    """(points, whether the readers printed anything) of a PLY / PCD file read by Open3D (its tensor reader),
+    with its output and RPly's captured and discarded."""
     import ctypes
     import tempfile
 
@@ -70,7 +75,9 @@ def read_quietly(path: Path) -> tuple[np.ndarray, bool]:
             os.dup2(sink.fileno(), 2)
             os.dup2(sink.fileno(), 1)
             with o3d.utility.VerbosityContextManager(o3d.utility.VerbosityLevel.Warning):
-                points = np.asarray(o3d.io.read_point_cloud(str(path)).points, dtype=np.float64)
+                # the tensor reader: the legacy one reads 8-byte float fields of binary PCD files as zeros
+                cloud = o3d.t.io.read_point_cloud(str(path)).point
+                points = cloud.positions.numpy().astype(np.float64) if "positions" in cloud else np.zeros((0, 3))
         finally:
             ctypes.CDLL(None).fflush(None)  # C stdio buffers into the sink, not after it is gone
             os.dup2(saved[0], 2)
@@ -79,6 +86,41 @@ def read_quietly(path: Path) -> tuple[np.ndarray, bool]:
             os.close(saved[1])
         printed = sink.seek(0, os.SEEK_END) > 0
     return points, printed
+
+
+def read_binary_pcd(path: Path, head: bytes) -> np.ndarray | None:
+    """The (N, 3) float64 points of a PCD file (`head`: its first bytes, `header_problem`'s check passed) of
+    uncompressed binary records whose x, y, z are each one 4- or 8-byte float field, read as one structured
+    array of the records' x, y, z; None for any other PCD (Open3D reads it). EOFError when the file holds
+    fewer records than its header declares."""
+    header, _, rest = head.decode("latin-1").partition("\nDATA ")
+    data_line = rest.split("\n", 1)[0]
+    if data_line.strip() != "binary":
+        return None
+    lines = {words[0]: words[1:] for words in map(str.split, header.splitlines()) if words}
+    names, types = lines.get("FIELDS", []), lines.get("TYPE", [])
+    try:
+        sizes = [int(x) for x in lines.get("SIZE", [])]
+        counts = [int(x) for x in lines.get("COUNT", ["1"] * len(names))]
+        n = int(lines.get("POINTS", [""])[0])
+    except ValueError:
+        return None
+    if not len(names) == len(types) == len(sizes) == len(counts) or n < 0 or min(counts, default=1) < 1:
+        return None
+    offsets = np.cumsum([0, *(z * c for z, c in zip(sizes, counts, strict=True))]).tolist()
+    xyz = [names.index(a) for a in ("x", "y", "z") if names.count(a) == 1]
+    if len(xyz) != 3 or any(types[k] != "F" or sizes[k] not in (4, 8) or counts[k] != 1 for k in xyz):
+        return None
+    records = np.dtype({"names": ["x", "y", "z"], "formats": [f"<f{sizes[k]}" for k in xyz],
+                        "offsets": [offsets[k] for k in xyz], "itemsize": offsets[-1]})
+    start = len(header) + len("\nDATA ") + len(data_line) + 1  # latin-1: one character a byte
+    if path.stat().st_size < start + n * records.itemsize:
+        raise EOFError("fewer records than the header declares")
+    data = np.fromfile(path, dtype=records, count=n, offset=start)
+    points = np.empty((n, 3), dtype=np.float64)
+    for k, axis in enumerate(("x", "y", "z")):
+        points[:, k] = data[axis]
+    return points
 
 
 def read_cloud(path: str | os.PathLike, what: str = "target_file") -> np.ndarray:
@@ -97,8 +139,13 @@ def read_cloud(path: str | os.PathLike, what: str = "target_file") -> np.ndarray
     problem = header_problem(path.suffix.lower(), head)
     if problem:
         raise CloudFileError(f"{what} {path}: {problem}")
-    points, printed = read_quietly(path)
-    points = points[np.isfinite(points).all(axis=1)]
+    try:  # the fast path, else Open3D
+        fast = read_binary_pcd(path, head) if path.suffix.lower() == ".pcd" else None
+        points, printed = (fast, False) if fast is not None else read_quietly(path)
+    except EOFError:
+        points, printed = np.zeros((0, 3)), True
+    finite = np.isfinite(points).all(axis=1)
+    points = points if finite.all() else points[finite]  # a copy only where one is needed (0.7 s for 9 M points)
     if printed or len(points) == 0:
         raise CloudFileError(f"{what} {path}: {'malformed or truncated' if printed else 'no points read'} "
                              f"({path.suffix[1:].upper()} cloud)")

@@ -36,8 +36,9 @@ Sections (--sections, comma separated):
              localisation time and retrieval time (--curve-scans scans each); docs/lidar_map_curve.png
   build      a map of --build-points points (the 4x3 map, topped up with a random share of its points
              jittered by 2 cm): MapLocalizer construction, place index and GICP map (the model and the
-             compiled kernels loaded before, as the node loads them at configure), first with an empty cache_dir, then 3 times from it (the median is the load time), each
-             in a fresh process (peak resident memory: its VmHWM)
+             compiled kernels loaded before, as the node loads them at configure), first with an empty
+             cache_dir, then 3 times from it (the median is the load time), each in a fresh process (peak
+             resident memory: its VmHWM)
   track      10 Hz drives along the longest street (not the terraced one), 1 and 2 m between scans (10 and 20
              m/s), 1 m off its centre-line, an HDL-64-like sensor at 2048 columns (~100k points): the first
              scan localised without a guess, each next one as register_node starts it in map mode
