@@ -307,13 +307,10 @@ def _rebuild(header: Header, cloud: DecodedCloud, fill) -> PointCloud2:
     )
 
 
-def array_to_msg(header: Header, records: np.ndarray, is_dense: bool = True) -> PointCloud2:
-    """A PointCloud2 from a structured array: (n,) unorganised or (height, width) organised.
-
-    Fields, offsets and point_step (itemsize, so padding is kept) come from the dtype; subarray fields
-    become `count`. All fields must share one byte order, which sets `is_bigendian`.
-    """
-    dt = records.dtype
+def field_layout(dt: np.dtype) -> tuple[list[tuple[str, int, int, int]], bool]:
+    """(name, offset, datatype, count) of each field of a structured dtype, as a PointCloud2 describes its records
+    (subarray fields become `count`), and whether they are big-endian. ValueError for a field type PointCloud2 has
+    no datatype for, or fields of two byte orders."""
     if dt.names is None:
         raise ValueError("records must be a structured array")
     fields, orders = [], set()
@@ -325,21 +322,46 @@ def array_to_msg(header: Header, records: np.ndarray, is_dense: bool = True) -> 
             raise ValueError(f"field '{name}' has unsupported dtype {base}")
         if base.itemsize > 1:
             orders.add(">" if base.byteorder == ">" or (base.byteorder == "=" and sys.byteorder == "big") else "<")
-        fields.append(PointField(name=name, offset=offset, datatype=code, count=count))
+        fields.append((name, offset, code, count))
     if len(orders) > 1:
         raise ValueError("all fields must share one byte order")
+    return fields, orders == {">"}
+
+
+def array_to_msg(header: Header, records: np.ndarray, is_dense: bool = True) -> PointCloud2:
+    """A PointCloud2 from a structured array: (n,) unorganised or (height, width) organised.
+
+    Fields, offsets and point_step (itemsize, so padding is kept) come from the dtype (`field_layout`); subarray
+    fields become `count`. All fields must share one byte order, which sets `is_bigendian`.
+    """
+    fields, bigendian = field_layout(records.dtype)
     height, width = (1, records.shape[0]) if records.ndim == 1 else records.shape
     return _new_cloud(
         _to_data(records),
         header=header,
         height=height,
         width=width,
-        fields=fields,
-        is_bigendian=orders == {">"},
-        point_step=dt.itemsize,
-        row_step=dt.itemsize * width,
+        fields=[PointField(name=n, offset=o, datatype=d, count=c) for n, o, d, c in fields],
+        is_bigendian=bigendian,
+        point_step=records.dtype.itemsize,
+        row_step=records.dtype.itemsize * width,
         is_dense=is_dense,
     )
+
+
+def records_cloud(records: np.ndarray) -> Any:
+    """A rosbags PointCloud2 over the bytes of a contiguous (n,) structured array, without a copy (`read_points`
+    decodes it as any cloud; its header empty): a file's records decoded by this codec. ValueError as
+    `field_layout`."""
+    fields, bigendian = field_layout(records.dtype)
+    t = TYPESTORE.types
+    field = t["sensor_msgs/msg/PointField"]
+    stamp = t["builtin_interfaces/msg/Time"](sec=0, nanosec=0)
+    return t[CLOUD_TYPE](header=t["std_msgs/msg/Header"](stamp=stamp, frame_id=""), height=1, width=len(records),
+                         fields=[field(name=n, offset=o, datatype=d, count=c) for n, o, d, c in fields],
+                         is_bigendian=bigendian, point_step=records.dtype.itemsize,
+                         row_step=records.dtype.itemsize * len(records),
+                         data=np.ascontiguousarray(records).view(np.uint8).reshape(-1), is_dense=False)
 
 
 def xyz_to_msg(header: Header, points: np.ndarray) -> PointCloud2:
