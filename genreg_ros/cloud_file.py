@@ -111,6 +111,8 @@ def read_binary_pcd(path: Path, head: bytes) -> np.ndarray | None:
         records = np.dtype(fields)
     except (ValueError, KeyError, TypeError):  # a malformed or unknown field: Open3D's to read or to refuse
         return None
+    if n < 0 or min(counts, default=1) < 1:
+        return None
     start = len(header) + len("\nDATA ") + len(data_line) + 1  # latin-1: one character a byte
     if path.stat().st_size < start + n * records.itemsize:
         raise EOFError("fewer records than the header declares")
