@@ -19,6 +19,8 @@ from pathlib import Path
 
 import numpy as np
 
+from genreg_ros.pointcloud2 import PointCloud2Error, read_points, records_cloud
+
 HEADER_BYTES = 65536  # a PLY or PCD header must end within this many bytes
 PCD_KINDS = {"F": "f", "I": "i", "U": "u"}  # a PCD field's TYPE -> numpy's kind (its records are little-endian)
 PLY_FORMATS = ("ascii", "binary_little_endian", "binary_big_endian")
@@ -94,8 +96,6 @@ def read_binary_pcd(path: Path, head: bytes) -> np.ndarray | None:
     uncompressed binary records: the records read as one structured array and decoded by the PointCloud2 codec
     (`genreg_ros.pointcloud2`; every point, non-finite ones included). None for any other PCD, or records it
     cannot decode (Open3D reads those). EOFError when the file holds fewer records than its header declares."""
-    from genreg_ros.pointcloud2 import PointCloud2Error, read_points, records_cloud
-
     header, _, rest = head.decode("latin-1").partition("\nDATA ")
     data_line = rest.split("\n", 1)[0]
     if data_line.strip() != "binary":
@@ -121,7 +121,7 @@ def read_binary_pcd(path: Path, head: bytes) -> np.ndarray | None:
                              finite_only=False).points
     except (PointCloud2Error, ValueError):  # e.g. integer coordinates, a field type PointCloud2 has no code for
         return None
-    return points.astype(np.float64)
+    return points.astype(np.float64, copy=False)
 
 
 def read_cloud(path: str | os.PathLike, what: str = "target_file") -> np.ndarray:
@@ -142,9 +142,9 @@ def read_cloud(path: str | os.PathLike, what: str = "target_file") -> np.ndarray
         raise CloudFileError(f"{what} {path}: {problem}")
     try:  # the fast path, else Open3D
         fast = read_binary_pcd(path, head) if path.suffix.lower() == ".pcd" else None
-        points, printed = (fast, False) if fast is not None else read_quietly(path)
     except EOFError:
-        points, printed = np.zeros((0, 3)), True
+        raise CloudFileError(f"{what} {path}: malformed or truncated (PCD cloud)") from None
+    points, printed = (fast, False) if fast is not None else read_quietly(path)
     finite = np.isfinite(points).all(axis=1)
     points = points if finite.all() else points[finite]  # a copy only where one is needed (0.7 s for 9 M points)
     if printed or len(points) == 0:
