@@ -10,7 +10,8 @@ map voxelised to 0.2 m on load; the scene model and registration profile).
 Worlds: `campus_world(seed, blocks)`. Seeds 0-2 are training worlds (settings may be chosen on them; --train
 uses seed 0, and seed 1 for off-map scans); the default runs held-out worlds, seed 7 (--seed, 7 or more)
 and seed + 1 for off-map scans, never used to choose a setting. Maps: `cached_map(world)` (the survey sensor
-every 3 m along every road and corridor, fused at 0.1 m voxels; cache/lidar_world). Scans: one revolution of
+every 3 m along every road and corridor, fused at 0.1 m voxels; cache/lidar_world; --indoor-spacing: every so
+many metres along the corridors instead, as a mapping robot walking them records far more often). Scans: one revolution of
 a VLP-32-like sensor (32 beams, 1024 columns, 100 m) with 6 movers (cars, pedestrians) that the map does not
 hold, at `test_poses` (0.6-2 m off the centre-lines, any heading; 1.8 m above the road, indoors at the floor
 robot's height of `survey_poses`). A scan's truth is T_map_scan = T_world_sensor (maps are in the world
@@ -127,6 +128,8 @@ def parse(argv: list[str] | None = None) -> argparse.Namespace:
     p.add_argument("--out", default=None, help="output folder (default runs/bench_lidar_map/<timestamp>)")
     p.add_argument("--figures", default=None, help="figure folder (default docs/; --quick: the output folder)")
     p.add_argument("--cache-dir", default="cache/lidar_world", help="where world maps are kept")
+    p.add_argument("--indoor-spacing", type=float, default=None, help="m between the survey's scans in corridors "
+                   "(default: every 3 m, as on roads)")
     p.add_argument("--no-progress", action="store_true", help="no progress bars")
     p.add_argument("--build-child", nargs=2, metavar=("MAP_NPY", "CACHE_DIR"), help=argparse.SUPPRESS)
     a = p.parse_args(argv)
@@ -413,7 +416,8 @@ class Bench:
         return lw.campus_world(seed, blocks)
 
     def map_of(self, world: lw.World) -> np.ndarray:
-        return lw.cached_map(world, cache_dir=self.args.cache_dir, progress=not self.args.no_progress)
+        return lw.cached_map(world, cache_dir=self.args.cache_dir, progress=not self.args.no_progress,
+                             indoor_spacing=self.args.indoor_spacing)
 
     @property
     def main(self) -> Setup:
@@ -1123,7 +1127,7 @@ def main() -> int:
     out = Path(a.out or f"runs/bench_lidar_map/{stamp}")
     figures = Path(a.figures) if a.figures else (out if a.quick else Path("docs"))
     meta: dict[str, Any] = {"argv": sys.argv[1:], "seed": a.seed, "offmap_seed": a.offmap_seed, "blocks": a.blocks,
-                            "train": a.train, "quick": a.quick, "sections": a.sections, "threads": a.threads,
+                            "train": a.train, "quick": a.quick, "sections": a.sections, "indoor_spacing": a.indoor_spacing, "threads": a.threads,
                             "streams": STREAMS, "max_re_deg": MAX_RE_DEG, "max_te_m": MAX_TE_M, "gate": GATE,
                             "indoor_height": INDOOR_HEIGHT, "load_average_start": os.getloadavg(),
                             "date": time.strftime("%Y-%m-%d %H:%M:%S %Z"), "cores": os.cpu_count(),
@@ -1134,7 +1138,8 @@ def main() -> int:
                f"Threads {a.threads} (torch {torch.get_num_threads()}, OMP_NUM_THREADS {os.environ['OMP_NUM_THREADS']}, "
                f"OMP_WAIT_POLICY {os.environ['OMP_WAIT_POLICY']}), "
                f"{os.cpu_count()} cores, load average at start {load_text()}; profile: "
-               f"retrieve {lidar_config().retrieve}, map_voxel {lidar_config().map_voxel:g} m; sections "
+               f"retrieve {lidar_config().retrieve}, map_voxel {lidar_config().map_voxel:g} m; map survey every 3 m "
+               f"({'also in corridors' if a.indoor_spacing is None else f'every {a.indoor_spacing:g} m in corridors'}); sections "
                f"{','.join(a.sections)}; code: {code_state()}.", "")
     t0 = time.perf_counter()
     bench = Bench(a, report, figures)

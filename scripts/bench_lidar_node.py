@@ -6,7 +6,8 @@
 
 The node runs in its own process (as with `ros2 run`) with config/genreg_lidar_map.yaml as shipped (and
 `diagnostics.period` 1 s). Its map is `bench_lidar_map.py`'s campus of that seed (held out: 7 and up; 4 x 3
-blocks, about 9 M points fused from survey scans every 3 m at 0.1 m voxels, cached under cache/lidar_world),
+blocks, about 9 M points fused from survey scans every 3 m at 0.1 m voxels, cached under cache/lidar_world;
+--indoor-spacing: the corridors surveyed every so many metres instead),
 written once as a binary PCD `target_file` under --work, where the node also keeps its prepared map
 (`<file>.genreg-cache/`: the first run builds it, later runs load it). This process publishes scans in the
 sensor frame as a driver does (`LidarScan.records`: x y z intensity ring time, misses as NaN), best effort
@@ -135,16 +136,18 @@ def parse(argv: list[str] | None = None) -> argparse.Namespace:
     p.add_argument("--startup-timeout", type=float, default=600.0, help="longest wait for the node's map, s")
     p.add_argument("--work", default="runs/bench_lidar_node", help="where the map file and the node's log go")
     p.add_argument("--cache-dir", default="cache/lidar_world", help="where world maps are kept")
+    p.add_argument("--indoor-spacing", type=float, default=None, help="m between the map survey's scans in "
+                   "corridors (default: every 3 m, as on roads)")
     p.add_argument("--json", default=None, help="also write the figures here")
     p.add_argument("--plot", default=None, help="also draw the run scan by scan (latency, TE) into this PNG")
     return p.parse_args(argv)
 
 
-def map_file(world: lw.World, cache_dir: str, work: Path) -> Path:
-    """The world's map as a binary PCD under `work` (written once)."""
-    path = work / f"{world.key}.pcd"
+def map_file(world: lw.World, cache_dir: str, work: Path, indoor_spacing: float | None = None) -> Path:
+    """The world's map (`indoor_spacing`: of the corridors' survey) as a binary PCD under `work` (written once)."""
+    path = work / f"{world.key}{'' if indoor_spacing is None else f'-in{indoor_spacing:g}'}.pcd"
     if not path.exists():
-        points = lw.cached_map(world, cache_dir=cache_dir)
+        points = lw.cached_map(world, cache_dir=cache_dir, indoor_spacing=indoor_spacing)
         cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points.astype(np.float64)))
         work.mkdir(parents=True, exist_ok=True)
         if not o3d.io.write_point_cloud(str(path), cloud):
@@ -365,7 +368,7 @@ def main(argv: list[str] | None = None) -> int:
     args = parse(argv)
     work = Path(args.work)
     world = lw.campus_world(args.seed, (4, 3))
-    path = map_file(world, args.cache_dir, work)
+    path = map_file(world, args.cache_dir, work, args.indoor_spacing)
     drive = drive_poses(world, args.drive_scans * args.drive_step)[::args.drive_step]
     walk = walk_poses(world, args.walk_scans)
     poses = {"start": drive[:1].repeat(STAND_SCANS, 0), "drive": drive[1:], "misclick": drive[-1:].repeat(STAND_SCANS, 0),

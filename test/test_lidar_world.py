@@ -272,6 +272,25 @@ def test_survey_poses_lie_on_the_centre_lines_in_free_space_heading_along(world:
         assert len(np.unique(np.round(xy, 3), axis=0)) > 0.9 * len(xy)
 
 
+def test_corridors_can_be_surveyed_more_densely_than_roads(world: World) -> None:
+    coarse, dense = survey_poses(world, 3.0), survey_poses(world, 3.0, indoor_spacing=1.0)
+    roads = survey_poses(world, 3.0, indoor=False)
+    np.testing.assert_array_equal(dense[:len(roads)], roads)  # the roads' survey unchanged
+    indoor = dense[len(roads):]
+    np.testing.assert_allclose(indoor[:, 2, 3], 0.6)
+    assert heading_along(indoor, world.indoor, 1e-9, 1e-6).all()
+    corridor_len = sum(np.linalg.norm(np.diff(line, axis=0), axis=1).sum() for line in world.indoor)
+    assert len(indoor) == pytest.approx(corridor_len / 1.0, abs=len(world.indoor) + 1)
+    assert len(coarse) - len(roads) == pytest.approx(corridor_len / 3.0, abs=len(world.indoor) + 1)
+    for line in world.indoor:  # consecutive poses along each corridor 1 m apart
+        on = indoor[heading_along(indoor, [line], 1e-9, 1e-6)]
+        steps = np.linalg.norm(np.diff(on[:, :2, 3], axis=0), axis=1)
+        assert np.isclose(steps, 1.0).mean() > 0.9
+    np.testing.assert_array_equal(survey_poses(world, 3.0, indoor_spacing=3.0), coarse)
+    with pytest.raises(ValueError):
+        survey_poses(world, 3.0, indoor_spacing=0.0)
+
+
 @pytest.mark.parametrize("where", ["roads", "indoor"])
 def test_held_out_poses_are_free_and_never_survey_poses(world: World, where: str) -> None:
     T = test_poses(world, 200, np.random.default_rng(1), where=where)
@@ -362,6 +381,8 @@ def test_cached_map_paths_name_the_world_and_the_survey(world: World, tmp_path: 
     assert a != map_path(campus_world(1, (1, 1)), 3.0, 0.1, tmp_path)
     assert a != map_path(campus_world(0, (2, 1)), 3.0, 0.1, tmp_path)
     assert a.parent == tmp_path and a.suffix == ".npy"
+    assert map_path(world, 3.0, 0.1, tmp_path, indoor_spacing=3.0) == a  # the default survey keeps its name
+    assert map_path(world, 3.0, 0.1, tmp_path, indoor_spacing=1.0) not in (a, map_path(world, 1.0, 0.1, tmp_path))
 
 
 def test_sensor_pose_defaults_keep_old_scans_identical() -> None:

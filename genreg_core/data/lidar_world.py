@@ -699,19 +699,22 @@ def _yaw_pose(x: float, y: float, z: float, yaw: float) -> np.ndarray:
 
 
 def survey_poses(world: World, spacing: float = 3.0, height: float = 1.8, indoor: bool = True,
-                 rng: np.random.Generator | None = None, indoor_height: float = 0.6) -> np.ndarray:
+                 rng: np.random.Generator | None = None, indoor_height: float = 0.6,
+                 indoor_spacing: float | None = None) -> np.ndarray:
     """(P, 4, 4) T_world_sensor every `spacing` m along every road (from its start, `height` m above the
-    ground) and, with `indoor`, every corridor (`indoor_height` m, a floor robot), heading along the line.
-    With `rng`: lateral jitter up to `JITTER_LATERAL` m and yaw jitter up to `JITTER_YAW` rad."""
-    if spacing <= 0:
-        raise ValueError(f"spacing must be positive, got {spacing}")
+    ground) and, with `indoor`, every `indoor_spacing` m (default `spacing`) along every corridor
+    (`indoor_height` m, a floor robot), heading along the line. With `rng`: lateral jitter up to
+    `JITTER_LATERAL` m and yaw jitter up to `JITTER_YAW` rad."""
+    indoor_spacing = spacing if indoor_spacing is None else indoor_spacing
+    if spacing <= 0 or indoor_spacing <= 0:
+        raise ValueError(f"spacings must be positive, got {spacing} and {indoor_spacing}")
     out = []
-    for lines, z in ((world.roads, height), (world.indoor if indoor else [], indoor_height)):
+    for lines, z, step in ((world.roads, height, spacing), (world.indoor if indoor else [], indoor_height, indoor_spacing)):
         for line in lines:
             seg = np.diff(line, axis=0)
             lengths = np.linalg.norm(seg, axis=1)
             cum = np.concatenate([[0.0], np.cumsum(lengths)])
-            for s in np.arange(0.0, cum[-1] + 1e-9, spacing):
+            for s in np.arange(0.0, cum[-1] + 1e-9, step):
                 k = min(int(np.searchsorted(cum, s, side="right")) - 1, len(seg) - 1)
                 u = seg[k] / lengths[k]
                 p = line[k] + u * (s - cum[k])
@@ -944,22 +947,25 @@ def sensor_key(sensor: LidarSensor) -> str:
 
 
 def map_path(world: World, spacing: float = 3.0, voxel: float = 0.1, cache_dir: str | Path = "cache/lidar_world",
-             sensor: LidarSensor | None = None) -> Path:
+             sensor: LidarSensor | None = None, indoor_spacing: float | None = None) -> Path:
     """Where `cached_map` keeps the map of these arguments."""
     sensor = sensor or SURVEY_SENSOR
-    return Path(cache_dir) / f"{world.key}-sp{spacing:g}-vox{voxel:g}-{sensor_key(sensor)}.npy"
+    indoor = "" if indoor_spacing is None or indoor_spacing == spacing else f"-in{indoor_spacing:g}"
+    return Path(cache_dir) / f"{world.key}-sp{spacing:g}{indoor}-vox{voxel:g}-{sensor_key(sensor)}.npy"
 
 
 def cached_map(world: World, spacing: float = 3.0, voxel: float = 0.1, cache_dir: str | Path = "cache/lidar_world",
-               sensor: LidarSensor | None = None, progress: bool = True) -> np.ndarray:
-    """`build_map(world, survey_poses(world, spacing), sensor, voxel)` (no jitter, corridors included, build
-    seed 0), loaded from `map_path(...)` when there, else built and saved there (with a .json beside it:
-    poses, points, area, build seconds, the sensor); `progress`: a progress bar while building."""
+               sensor: LidarSensor | None = None, progress: bool = True, indoor_spacing: float | None = None
+               ) -> np.ndarray:
+    """`build_map(world, survey_poses(world, spacing, indoor_spacing=indoor_spacing), sensor, voxel)` (no jitter,
+    corridors included, build seed 0), loaded from `map_path(...)` when there, else built and saved there (with
+    a .json beside it: poses, points, area, build seconds, the sensor); `progress`: a progress bar while
+    building."""
     sensor = sensor or SURVEY_SENSOR
-    path = map_path(world, spacing, voxel, cache_dir, sensor)
+    path = map_path(world, spacing, voxel, cache_dir, sensor, indoor_spacing)
     if path.exists():
         return np.load(path)
-    poses = survey_poses(world, spacing)
+    poses = survey_poses(world, spacing, indoor_spacing=indoor_spacing)
     start = time.perf_counter()
     cloud = build_map(world, poses, sensor, voxel, progress=progress)
     seconds = time.perf_counter() - start
@@ -968,7 +974,8 @@ def cached_map(world: World, spacing: float = 3.0, voxel: float = 0.1, cache_dir
     np.save(tmp, cloud)
     os.replace(tmp, path)
     info = {"world": world.key, "blocks": list(world.blocks), "seed": world.seed, "area_m2": world.area_m2,
-            "bounds": list(world.bounds), "spacing": spacing, "voxel": voxel, "poses": len(poses),
+            "bounds": list(world.bounds), "spacing": spacing,
+            "indoor_spacing": spacing if indoor_spacing is None else indoor_spacing, "voxel": voxel, "poses": len(poses),
             "points": len(cloud), "build_seconds": round(seconds, 1), "sensor": repr(sensor)}
     path.with_suffix(".json").write_text(json.dumps(info, indent=1) + "\n")
     return cloud
