@@ -138,7 +138,7 @@ def parse(argv: list[str] | None = None) -> argparse.Namespace:
     p.add_argument("--cache-dir", default="cache/lidar_world", help="where world maps are kept")
     p.add_argument("--indoor-spacing", type=float, default=None, help="m between the map survey's scans in "
                    "corridors (default: every 3 m, as on roads)")
-    p.add_argument("--json", default=None, help="also write the figures here")
+    p.add_argument("--json", default=None, help="also write the figures and every scan's status here")
     p.add_argument("--plot", default=None, help="also draw the run scan by scan (latency, TE) into this PNG")
     return p.parse_args(argv)
 
@@ -272,6 +272,12 @@ def answers(stream: Stream) -> list[Answer]:
         published = values.get("published") == "true" and s.stamp in transforms
         out.append(Answer(s, values, tuple(transform_errors(transforms[s.stamp].T, s.truth)) if published else None))
     return out
+
+
+def scan_record(a: Answer) -> dict[str, object]:
+    """One scan for the JSON: its stamp, phase, status values and, when published, its RE (deg) and TE (m)."""
+    return {"stamp": a.sent.stamp, "phase": a.sent.phase, "status": a.status,
+            "re_deg": None if a.errors is None else a.errors[0], "te_m": None if a.errors is None else a.errors[1]}
 
 
 def phase_figures(run: list[Answer], phase: str) -> dict[str, object]:
@@ -449,7 +455,8 @@ def main(argv: list[str] | None = None) -> int:
         Path(args.json).write_text(json.dumps({"world": world.key, "ready_s": ready_s, "wall_s": wall, "cpu_s": cpu,
                                                "rss_ready_mb": rss_ready, "rss_laps_mb": rss_laps,
                                                "rss_end_mb": rss_end, "node_counts": counts, "phases": figures,
-                                               "first_latency_ms": None if first is None else first.latency_ms},
+                                               "first_latency_ms": None if first is None else first.latency_ms,
+                                               "scans": [scan_record(a) for a in run]},
                                               indent=1))
     return 0
 

@@ -52,8 +52,14 @@ def test_a_phase_counts_each_scan_once_by_its_answer_and_its_error_against_the_t
     transforms = {1000 + k: Output(0.0, "map", "velodyne", truth[k] @ make_transform(np.eye(3), [0.0, d, 0.0]))
                   for k, d in enumerate(off) if d is not None}
     client = SimpleNamespace(lock=threading.Lock(), status=status, transforms=transforms)
-    f = bench.phase_figures(bench.answers(SimpleNamespace(client=client, sent=sent)), "walk")
+    run = bench.answers(SimpleNamespace(client=client, sent=sent))
+    f = bench.phase_figures(run, "walk")
     assert (f["sent"], f["answered"], f["lost"], f["published"], f["wrong"], f["jumped"]) == (5, 4, 1, 3, 1, 1)
+    records = [bench.scan_record(a) for a in run]  # the JSON's scans: each with its status and errors
+    assert [r["stamp"] for r in records] == [1000 + k for k in range(6)] and records[5]["phase"] == "drive"
+    assert records[1]["te_m"] == pytest.approx(0.3) and records[1]["status"] == status[1001]
+    assert records[2]["te_m"] is None and records[2]["status"]["reason"] == "dropped.superseded"
+    assert records[3] == {"stamp": 1003, "phase": "walk", "status": {}, "re_deg": None, "te_m": None}
     assert f["reasons"] == {"dropped.superseded": 1} and f["within_0.1_m"] == "2/3" and f["first_published"] == 0
     assert f["te_median_m"] == pytest.approx(0.05) and f["te_max_m"] == pytest.approx(0.3)
     assert f["latency_ms_p50"] == pytest.approx(20.0)
