@@ -133,16 +133,19 @@ _ROW_HASH = np.array([0x9E3779B97F4A7C15, 0xC2B2AE3D27D4EB4F, 0x165667B19E3779F9
 
 def repeated_rows(points: np.ndarray) -> np.ndarray:
     """Which rows of a float64 (n, 3) array repeat an earlier-sorted row exactly (-0.0 equals 0.0): one
-    sort of a 64-bit hash per row, the rows compared where the hashes agree."""
+    sort of a 64-bit hash per row, the rows compared where the hashes agree. No two hashes alike (the common
+    case) is told by sorting the hashes alone, several times faster than the stable argsort that orders the rows."""
     x = np.ascontiguousarray(points, dtype=np.float64) + 0.0  # + 0.0: -0.0 becomes 0.0
     with np.errstate(over="ignore"):
         key = (x.view(np.uint64) * _ROW_HASH).sum(axis=1, dtype=np.uint64)  # wraps: a hash
-    order = np.argsort(key, kind="stable")
     repeated = np.zeros(len(x), dtype=bool)
+    ordered = np.sort(key)
+    if not (ordered[1:] == ordered[:-1]).any():
+        return repeated
+    order = np.argsort(key, kind="stable")
     same = key[order[1:]] == key[order[:-1]]
-    if same.any():
-        later, earlier = order[1:][same], order[:-1][same]
-        repeated[later[(x[later] == x[earlier]).all(axis=1)]] = True
+    later, earlier = order[1:][same], order[:-1][same]
+    repeated[later[(x[later] == x[earlier]).all(axis=1)]] = True
     return repeated
 
 

@@ -49,6 +49,7 @@ def test_repeated_rows_agrees_with_numpy_unique():
 
     rng = np.random.default_rng(3)
     x = rng.standard_normal((3000, 3))
+    assert not repeated_rows(x).any() and not repeated_rows(x[:1]).any()  # distinct rows: no hash repeats either
     x = np.concatenate([x, x[rng.choice(3000, 400)], [[0.0, -0.0, 1.0], [-0.0, 0.0, 1.0]]])
     repeated = repeated_rows(x)
     assert (~repeated).sum() == len(np.unique(x + 0.0, axis=0))  # numpy: -0.0 == 0.0 after + 0.0
