@@ -47,7 +47,8 @@ Sections (--sections, comma separated):
              (`map.predict_motion`), judged as the node judges it (`follow`): scans not published, in state
              lost (no guess after 2 misses), published but not placed
   track-indoor the global section's corridor scans (--indoor-scans, its poses) localised from guesses off the
-             truth by 0.3 m and 3 deg, and by 1 m and 10 deg (each in a random direction and turn): placed,
+             truth by 0.3 m and 3 deg, and by 1 m and 10 deg (--indoor-guesses; each in a random direction and
+             turn): placed,
              confident-wrong, TE, the largest error along the corridor of an accepted pose
   walk-indoor a 10 Hz walk at 1.5 m/s (0.15 m between scans, --walk-scans of them) along the main corridor,
              0.5 m right of its centre-line, at the indoor scans' height and sensor: the first scan from its
@@ -102,6 +103,14 @@ def blocks_arg(text: str) -> tuple[int, int]:
     return nx, ny
 
 
+INDOOR_GUESSES = ((0.3, 3.0), (1.0, 10.0))  # track-indoor: the guesses' offsets from the truth (m, deg)
+
+
+def guesses_arg(text: str) -> tuple[tuple[float, float], ...]:
+    """`m:deg,m:deg,...`: track-indoor's guesses, each off the truth by m metres and deg degrees."""
+    return tuple((float(m), float(d)) for m, d in (pair.split(":") for pair in text.split(",")))
+
+
 def parse(argv: list[str] | None = None) -> argparse.Namespace:
     p = argparse.ArgumentParser(description=(__doc__ or "").splitlines()[0],
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -120,6 +129,8 @@ def parse(argv: list[str] | None = None) -> argparse.Namespace:
     p.add_argument("--curve-blocks", default=None, help="world sizes of the curve (default 1x1,2x1,2x2,4x3)")
     p.add_argument("--track-scans", type=int, default=None, help="scans of the drive (default 60)")
     p.add_argument("--walk-scans", type=int, default=None, help="scans of the corridor walk (default 200)")
+    p.add_argument("--indoor-guesses", type=guesses_arg, default=INDOOR_GUESSES, help="track-indoor's guesses, "
+                   "m:deg off the truth, comma-separated (default 0.3:3,1:10)")
     p.add_argument("--offmap-scans", type=int, default=None, help="off-map scans (default 20)")
     p.add_argument("--mirrored-scans", type=int, default=None, help="mirrored road scans (default 20)")
     p.add_argument("--beyond-scans", type=int, default=None, help="scans beyond the partial map (default 20)")
@@ -196,7 +207,6 @@ INDOOR_HEIGHT = float(inspect.signature(lw.survey_poses).parameters["indoor_heig
 MIRROR = np.array([1.0, -1.0, 1.0])  # the mirrored section's scans: y -> -y in the sensor frame
 STREAMS = {"roads": 1, "indoor": 2, "scans": 3, "curve": 10, "track": 20, "offmap": 30, "beyond": 40,
            "track-indoor": 50, "walk-indoor": 60, "tilted": 70}
-INDOOR_GUESSES = ((0.3, 3.0), (1.0, 10.0))  # track-indoor: the guesses' offsets from the truth (m, deg)
 SCAN_PERIOD_NS = 100_000_000  # track, walk-indoor: a scan every 100 ms (10 Hz)
 GUESSES = {False: "the last pose", True: "predicted (constant velocity)"}  # track, walk-indoor: map.predict_motion
 FOLLOW_HEAD = ["step", "guess", "scans", "tracked ms median", "tracked ms p95", "TE median m", "TE max m",
@@ -612,7 +622,7 @@ class Bench:
         scans = world_scans(w, poses, rng_of("scans", a.seed, 1), "indoor")
         rng = rng_of("track-indoor", a.seed)
         rows = []
-        for metres, degrees in INDOOR_GUESSES:
+        for metres, degrees in a.indoor_guesses:
             recs = []
             for i, (T, scan) in enumerate(progress(list(zip(poses, scans)), f"track-indoor {metres:g} m")):
                 heading = rng.uniform(-np.pi, np.pi)

@@ -131,3 +131,19 @@ def test_seated_tells_the_true_place_from_one_the_scan_does_not_fit(monkeypatch)
     far = truth.copy()
     far[:3, 3] += [30.0, 0.0, 0.0] if np.ptp(world.bounds[:2]) >= np.ptp(world.bounds[2:]) else [0.0, 30.0, 0.0]
     assert bench.seated(loc, scan, truth) >= bench.GATE > bench.seated(loc, scan, far)
+
+
+def test_track_indoor_guesses_are_read_as_metres_and_degrees(monkeypatch):
+    monkeypatch.syspath_prepend(str(REPO / "scripts"))
+    monkeypatch.setenv("OMP_WAIT_POLICY", os.environ.get("OMP_WAIT_POLICY", "PASSIVE"))
+    monkeypatch.setenv("OMP_NUM_THREADS", os.environ.get("OMP_NUM_THREADS", "2"))
+    import bench_lidar_map as bench
+
+    assert bench.parse([]).indoor_guesses == ((0.3, 3.0), (1.0, 10.0))
+    assert bench.parse(["--indoor-guesses", "0.5:5,2:10"]).indoor_guesses == ((0.5, 5.0), (2.0, 10.0))
+    try:
+        bench.parse(["--indoor-guesses", "2m"])
+    except SystemExit as exc:
+        assert exc.code == 2  # argparse's usage error
+    else:
+        raise AssertionError("a guess without its angle was taken")
