@@ -457,10 +457,12 @@ class MapLocalizer:
         radius = step ** np.ceil(np.log(max(radius, 1e-9)) / np.log(step))
         return centroid, float(radius), robust_extent(scan)[1]
 
-    def localize(self, scan_xyz: np.ndarray, initial_guess: np.ndarray | None = None) -> RegistrationResult:
+    def localize(self, scan_xyz: np.ndarray, initial_guess: np.ndarray | None = None, *, rough: bool = False
+                 ) -> RegistrationResult:
         """T_map_scan of a scan (`transformation`) and its calibrated confidence; `initial_guess`: a 4x4
-        T_map_scan to start from. A scan the map does not hold gets a low confidence; bad input raises
-        the Registrar's named errors. The result's clouds and masks are those of the voxelised scan."""
+        T_map_scan to start from; `rough`: the guess may be `rough_reach` m off (an operator's click), not a
+        tracked pose. A scan the map does not hold gets a low confidence; bad input raises the Registrar's named
+        errors. The result's clouds and masks are those of the voxelised scan."""
         reg = self.registrar
         finite, _ = validate_cloud(scan_xyz, "source", reg.config.min_points)
         guess = None if initial_guess is None else check_transform(initial_guess)
@@ -474,10 +476,10 @@ class MapLocalizer:
         geometry = None if indexed else self.scan_geometry(scan)
         if guess is not None:  # tracking runs with the calibration's tracking model only
             tracked = self.track(scan, guess, None if geometry is None else geometry[:2],
-                                 self.whole_map() if indexed else None) if self.tracking_calibrated else None
+                                 self.whole_map() if indexed else None, rough=rough) if self.tracking_calibrated else None
             # with the index, a track that moved beyond GICP's reach from its guess (a stale guess, which may
             # have slid onto a look-alike place along a repeating street) is checked like an unsure one
-            far = indexed and tracked is not None and not self.within_reach(tracked.transformation, guess)
+            far = indexed and tracked is not None and not self.within_reach(tracked.transformation, guess, rough)
             # a track as well fitted moved along a road as where GICP left it, outside a corridor: stopped on a
             # plateau short of the place (a guess metres behind a vehicle), not in the place's own fit
             plateau = indexed and tracked is not None and not far and self.on_a_plateau(tracked, scan)
@@ -531,12 +533,13 @@ class MapLocalizer:
             self._enclosed = (scan, self.place_index().enclosure(scan))
         return self._enclosed[1]
 
-    def within_reach(self, T: np.ndarray, guess: np.ndarray) -> bool:
+    def within_reach(self, T: np.ndarray, guess: np.ndarray, rough: bool = False) -> bool:
         """Whether the pose T_map_scan `T` lies within tracking's reach of `guess`: GICP's correspondence
-        distance (`track_distance` map voxels) and PDSAC's mode separation (a pose beyond it was not tracked
-        from the guess but found elsewhere)."""
+        distance (`track_distance` map voxels; of a `rough` guess, at least `rough_reach` m) and PDSAC's mode
+        separation (a pose beyond it was not tracked from the guess but found elsewhere)."""
+        distance = self.config.track_distance * self.voxel_size
         return not distinct_poses(T, guess, np.radians(self.registrar.config.pdsac.mode_separation),
-                                  self.config.track_distance * self.voxel_size)
+                                  max(distance, self.config.rough_reach) if rough else distance)
 
     def searched(self, scan: np.ndarray, geometry: tuple[np.ndarray, float, float]) -> list[RegistrationResult]:
         """The global results of a voxelised scan without a guess or an index (`geometry`: its `scan_geometry`),
@@ -610,13 +613,14 @@ class MapLocalizer:
         return self._local
 
     def track(self, scan: np.ndarray, guess: np.ndarray, geometry: tuple[np.ndarray, float] | None = None,
-              local: LocalMap | None = None, iterations: int | None = None, search: bool = True
-              ) -> RegistrationResult | None:
+              local: LocalMap | None = None, iterations: int | None = None, search: bool = True,
+              rough: bool = False) -> RegistrationResult | None:
         """The voxelised scan aligned by GICP from `guess` (T_map_scan) against the local map around it
         (`local`), verified and built into a result as a registration is (`result.build_result`: inlier ratio
         NaN, taken as 1: no network pass; no generated clouds; `start` "initial_guess"; `verified`); a result as
         well fitted moved along the scan's main axis is named and, with `search`, aligned again from that
-        valley's best fit (`flat`) unless it lies on a plateau along a road (`on_a_plateau`). `geometry`: the
+        valley's best fit (`flat`; from a `rough` guess searched as far as `rough_reach`) unless it lies on a
+        plateau along a road (`on_a_plateau`). `geometry`: the
         scan's (centroid, radius) from `scan_geometry`, if known (used only to find the local map). Its confidence is the calibration's tracking
         model's (`tracking_confidence`; without one, uncalibrated as `genreg_core.result` says). None when the
         map holds too few points around the guess, or when the guess puts less than `MIN_NEAR_SHARE` of the
@@ -643,7 +647,8 @@ class MapLocalizer:
 
         T = aligned(guess)
         t1 = time.perf_counter()
-        result, valley = self.flat(*self.verified(scan, sample, index, T), sample, index, search)
+        reach = max(FLAT_SHIFT_SPACINGS, c.rough_reach / voxel) if rough else FLAT_SHIFT_SPACINGS
+        result, valley = self.flat(*self.verified(scan, sample, index, T), sample, index, search, reach)
         # GICP stopped on a ripple of a flat valley: aligned again from the valley's best fit (in a corridor; a valley
         # along a road is a plateau, which the place index checks: `on_a_plateau`)
         if valley is not None and not (self.config.retrieve > 0 and self.on_a_plateau(result, scan)):
@@ -671,7 +676,7 @@ class MapLocalizer:
         return result, float(within[-1])
 
     def flat(self, result: RegistrationResult, tight: float, sample: np.ndarray, index: TargetIndex,
-             search: bool = True) -> tuple[RegistrationResult, np.ndarray | None]:
+             search: bool = True, reach: float = FLAT_SHIFT_SPACINGS) -> tuple[RegistrationResult, np.ndarray | None]:
         """A tracked result whose fit is as good moved along the scan's main horizontal axis (a uniform
         corridor or road): `sample` (the tracked scan points, scan frame) seats within one map spacing as
         many points (at least `flat_fit` x `tight`, the pose's own share) at the pose moved
@@ -682,10 +687,16 @@ class MapLocalizer:
         `track_below` are not tested (they are not kept as tracked; off: `flat_fit` 0).
 
         With `search`, a named result also gives the valley's best fit: the pose moved by the multiple of half a
-        spacing, up to `FLAT_SHIFT_SPACINGS` spacings either way, that seats the most points, when that is more
-        than the pose's own and lies beyond GICP's basin around it (`VALLEY_BASIN`; else None). GICP from a guess off along a corridor can stop on a ripple of the valley's
+        spacing, up to `reach` spacings either way (`FLAT_SHIFT_SPACINGS`; a rough guess's `rough_reach`), that
+        seats the most points, when that is more than the pose's own and lies beyond GICP's basin around it
+        (`VALLEY_BASIN`; else None). GICP from a guess off along a corridor can stop on a ripple of the valley's
         floor (a thin wall's other face, the map's voxels) 0.2-0.3 m from the place; from the best fit it reaches
-        the place."""
+        the place. From a guess metres off (a click) in a uniform stretch GICP stays near the guess: searched as far
+        as the guess may be off, the place's fit is found farther along. There (a rough guess's search, `reach`
+        beyond `FLAT_SHIFT_SPACINGS`) the best fit, the pose's own included, is moved to only when no pose distinct
+        from it (more than `rival_distance` spacings away) seats `rough_rival` x as many points: else the valley
+        does not tell where in it the scan is, and the pose stays, that fit named as a rival place and the
+        confidence held at 1 - its own."""
         ratio = self.config.flat_fit
         if ratio <= 0 or tight <= 0 or result.confidence < self.config.track_below:  # an unsure pose is not kept
             return result, None
@@ -706,9 +717,20 @@ class MapLocalizer:
         named = spanning(result, shift * u, 1.0, text)
         if not search:
             return named, None
-        inner = [k / 2 for k in range(1 - 2 * FLAT_SHIFT_SPACINGS, 2 * FLAT_SHIFT_SPACINGS) if k != 0]
+        steps = round(2 * reach)
+        inner = [k / 2 for k in range(-steps, steps + 1) if k != 0 and k / 2 not in shares]
         shares |= dict(zip(inner, seated(inner), strict=True))
         best = max(shares, key=lambda k: (shares[k], -abs(k)))  # the nearer of equally fitting shifts
+        if reach > FLAT_SHIFT_SPACINGS:  # a rough guess: a valley too flat to tell where in it the scan is?
+            fits = {0.0: tight, **shares}
+            top = max(fits, key=lambda k: (fits[k], -abs(k)))
+            rival = max((k for k in fits if abs(k - top) > self.config.rival_distance),
+                        key=lambda k: (fits[k], -abs(k - top)), default=None)
+            if rival is not None and fits[rival] >= self.config.rough_rival * fits[top]:
+                offset = (rival - top) * voxel
+                text = f"{motion('translation along', u)}: {AS_WELL_FITTED} {abs(offset):.2f} m along it, a rival place"
+                return replace(spanning(named, offset * u, 0.25, text),
+                               confidence=below_rival(named.confidence, named.confidence)), None
         beyond = shares[best] > tight and abs(best) > VALLEY_BASIN  # else GICP from it comes back to T
         return named, moved_along(T, u, [best * voxel])[0] if beyond else None
 

@@ -368,7 +368,7 @@ class MapPipeline(Pipeline):
                                  keep=c.map.localization.retrieve > 0)
         t1 = time.perf_counter()
         try:
-            result = localizer.localize(prepared.source_points, initial_guess=start.T)
+            result = localizer.localize(prepared.source_points, initial_guess=start.T, rough=start.rough)
         except GenRegError as exc:
             self._outcome(c, step, hit=False)
             raise NotRegistered("failed", failure_reason(exc), f"localisation failed: {exc}") from None
@@ -376,7 +376,7 @@ class MapPipeline(Pipeline):
         # a pose beyond tracking's reach of its start was found elsewhere (the place index): while no pose is known
         # (global, lost) a relocalisation; from a predicted start, the motion broke off (a kidnap): the next scan's
         # prediction does not go on with it (`motion_continues`)
-        moved = placement(before, start, start.T is None or localizer.within_reach(result.transformation, start.T))
+        moved = placement(before, start, start.T is None or localizer.within_reach(result.transformation, start.T, start.rough))
         verdict = judge(result, c, relocalized=moved.relocalized)
         # a miss: not published; a published pose not tracked from its start is a jump (`jumped`, `pose_jumps`)
         verdict = replace(verdict, localization=self._outcome(c, step, hit=verdict.publish), jumped=moved.jumped)

@@ -61,6 +61,12 @@ class Start:
     discarded: str = ""
     note: str = ""
 
+    @property
+    def rough(self) -> bool:
+        """Whether the guess is an operator's click (`initialpose`), which may be metres off, not a pose tracked
+        or computed (`MapLocalizer.localize`'s `rough`)."""
+        return self.origin == "initialpose"
+
 
 def motion_continues(origin: str, jumped: bool) -> bool:
     """Whether a result continues the tracked motion (`Tracker.record`'s `continues`): it started from the last

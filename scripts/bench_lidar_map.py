@@ -48,7 +48,7 @@ Sections (--sections, comma separated):
              lost (no guess after 2 misses), published but not placed
   track-indoor the global section's corridor scans (--indoor-scans, its poses) localised from guesses off the
              truth by 0.3 m and 3 deg, and by 1 m and 10 deg (--indoor-guesses; each in a random direction and
-             turn): placed,
+             turn), each given as an operator's `initialpose` is (`localize(..., rough=True)`): placed,
              confident-wrong, TE, the largest error along the corridor of an accepted pose
   walk-indoor a 10 Hz walk at 1.5 m/s (0.15 m between scans, --walk-scans of them) along the main corridor,
              0.5 m right of its centre-line, at the indoor scans' height and sensor: the first scan from its
@@ -333,10 +333,12 @@ def seated(loc: MapLocalizer, scan: np.ndarray, T: np.ndarray) -> float:
 
 
 def localise(loc: MapLocalizer, scan: np.ndarray, truth: np.ndarray | None, section: str, kind: str, i: int,
-             guess: np.ndarray | None = None, diagnose: bool = True) -> tuple[dict[str, Any], RegistrationResult]:
-    """One scan localised (timed) and its record: errors against `truth` (None: off the map)."""
+             guess: np.ndarray | None = None, diagnose: bool = True, rough: bool = False
+             ) -> tuple[dict[str, Any], RegistrationResult]:
+    """One scan localised (timed) and its record: errors against `truth` (None: off the map); `rough`: the guess
+    is an operator's `initialpose` (`MapLocalizer.localize`'s `rough`, as register_node passes it)."""
     t0 = time.perf_counter()
-    result = loc.localize(scan, initial_guess=guess)
+    result = loc.localize(scan, initial_guess=guess, rough=rough)
     seconds = time.perf_counter() - t0
     T = result.transformation
     rec: dict[str, Any] = {"section": section, "kind": kind, "i": i, "points": len(scan), "seconds": seconds,
@@ -629,7 +631,7 @@ class Bench:
                 off = sensor_pose(metres * np.cos(heading), metres * np.sin(heading), 0.0,
                                   np.radians(degrees) * rng.choice([-1.0, 1.0]))
                 rec, _ = localise(s.loc, scan, T, "track-indoor", f"{metres:g} m, {degrees:g} deg", i, T @ off,
-                                  diagnose=False)
+                                  diagnose=False, rough=True)
                 axis = corridor_axis(w, T)
                 rec["along_m"] = abs(float((np.asarray(rec["estimate"])[:2, 3] - T[:2, 3]) @ axis))
                 recs.append(rec)
@@ -644,7 +646,8 @@ class Bench:
                          fmt(pct(ms, 50))])
         self.report.add(f"## Tracking in corridors: {len(poses)} corridor scans of {w.key} from a guess", "",
                         f"The global section's corridor scans ({INDOOR_HEIGHT:g} m high), each localised from its "
-                        "truth moved by the offset in a random direction and turned by the angle either way. Load "
+                        "truth moved by the offset in a random direction and turned by the angle either way, given "
+                        "as an operator's `initialpose` is (searched `rough_reach` along a corridor). Load "
                         f"average {load_text()}.", "")
         self.report.table(["guess off by", "scans", "placed", "confident-wrong", "TE median m",
                            "largest error along the corridor, accepted m", "confident-wrong: TE at confidence", "ms median"], rows)
@@ -860,8 +863,8 @@ def follow(loc: MapLocalizer, poses: np.ndarray, scans: list[np.ndarray], sectio
         step, start = scan_start(before, tracker.start(config, "scan", "map", float(i), tracking=True,
                                                        parameter=False, stamp=stamp if predict else None),
                                  keep=config.map.localization.retrieve > 0)
-        rec, result = localise(loc, scan, T, section, kind, i, start.T, diagnose=False)
-        moved = placement(before, start, start.T is None or loc.within_reach(result.transformation, start.T))
+        rec, result = localise(loc, scan, T, section, kind, i, start.T, diagnose=False, rough=start.rough)
+        moved = placement(before, start, start.T is None or loc.within_reach(result.transformation, start.T, start.rough))
         publish = judge(result, config, relocalized=moved.relocalized).publish
         rec.update(state=state.update(step, publish), published=publish)
         recs.append(rec)

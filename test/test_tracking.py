@@ -163,6 +163,22 @@ def test_a_pose_placed_without_a_guess_is_placed_again_for_its_velocity():
     assert clicked.start(TRACKING, "lidar", "map", now=1.3, stamp=300 * ms).origin == "parameter"
 
 
+def test_only_an_initialpose_start_is_rough():
+    """An operator's click (`initialpose`) may be metres off: its start is rough (the localiser searches as far);
+    a guess on `initial_guess`, the last pose and the pose moved on from it are not."""
+    tracker = Tracker()
+    tracker.set_guess(shift(2.0), "map", None, "initialpose", now=1.0)
+    clicked = tracker.start(TRACKING, "lidar", "map", now=1.1, tracking=True, parameter=False)
+    assert clicked.origin == "initialpose" and clicked.rough
+    assert tracker.record(shift(0.1), source_stamp=100, generation=0, now=1.2, continues=False)
+    tracked = tracker.start(TRACKING, "lidar", "map", now=1.3, tracking=True, parameter=False)
+    assert tracked.origin == "last_result" and not tracked.rough
+    tracker.set_guess(shift(2.0), "map", "lidar", "initial_guess", now=1.4)
+    given = tracker.start(TRACKING, "lidar", "map", now=1.5, tracking=True, parameter=False)
+    assert given.origin == "initial_guess" and not given.rough
+    assert not Start(None, "none").rough
+
+
 def test_in_state_global_a_tracked_start_is_dropped_and_a_topic_guess_kept():
     """Global and lost localise without a guess: the last pose, moved on or not, is not used there (unless
     `keep`)."""
