@@ -402,17 +402,16 @@ class LocalizationConfig:
                               "place and is checked by the place index as an unsure track is (0: off).",
                               low=0.0, high=10.0)
     rough_reach: float = setting(0.0, "A rough guess (an operator's initialpose: localize(..., rough=True)) may be "
-                                 "this far off, m: a track from it named as well fitted along the scan's main axis "
-                                 "(flat_fit) is also tried at the best fit up to this far either way along it (a "
-                                 "click metres off in a uniform stretch of corridor, where GICP stays), and a pose "
-                                 "within this distance of the guess counts as tracked from it (0: off).",
-                                 low=0.0, high=100.0)
-    rough_rival: float = setting(0.95, "A track from a rough guess (rough_reach) where two poses along the axis "
-                                 "distinct from each other (rival_distance map voxels apart) seat the most points, "
-                                 "the second at least this share of the first's: a valley too flat to tell where in "
-                                 "it the scan is; the track stays, the other fit named as a rival place and the "
-                                 "confidence held at 1 - its own.",
-                                 low=0.0, high=10.0)
+                                 "this far off, m: a confident track from it in a flat valley (flat_fit) or moved "
+                                 "beyond GICP's reach is aligned again from poses along the scan's main horizontal "
+                                 "axis up to this far either way (a corridor, where GICP from a click metres off "
+                                 "stays near it or slides to a look-alike fit) and the pose that seats the most "
+                                 "points wins (rough_rival); a pose so checked counts as tracked from the guess "
+                                 "(0: off).", low=0.0, high=100.0)
+    rough_rival: float = setting(0.98, "Of a rough guess's poses along the corridor (rough_reach), one distinct from "
+                                 "the best that seats at least this share of its points is its rival: the fits do "
+                                 "not tell where along the corridor the scan is; the best is named with it and its "
+                                 "confidence held at 1 - its own.", low=0.0, high=10.0)
     corridor_share: float = setting(0.0, "A scan that has structure (0.3 m to index_band above its ground) within "
                                     "4 m of the sensor in at least this share of directions is in a corridor, which "
                                     "one scan cannot tell from look-alike corridors: a pose searched for there (the "

@@ -71,7 +71,7 @@ import os
 import time
 import warnings
 import zipfile
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, replace
 from pathlib import Path
 
@@ -645,14 +645,26 @@ class MapLocalizer:
             return gicp.align(sample, start, max_distance=c.track_distance * voxel,
                               max_iterations=iterations or c.track_iterations, threads=self.threads)
 
+        def settled(T: np.ndarray) -> tuple[RegistrationResult, float]:
+            """A GICP pose verified (and its tight share); in a flat valley, aligned again from the valley's best fit
+            (a corridor's: GICP stopped on a ripple; a valley along a road is a plateau, which the place index
+            checks: `on_a_plateau`)."""
+            result, tight = self.verified(scan, sample, index, T)
+            result, valley = self.flat(result, tight, sample, index, search)
+            if valley is not None and not (self.config.retrieve > 0 and self.on_a_plateau(result, scan)):
+                result, tight = self.verified(scan, sample, index, aligned(valley))
+                result, _ = self.flat(result, tight, sample, index, search=False)
+            return result, tight
+
         T = aligned(guess)
         t1 = time.perf_counter()
-        reach = max(FLAT_SHIFT_SPACINGS, c.rough_reach / voxel) if rough else FLAT_SHIFT_SPACINGS
-        result, valley = self.flat(*self.verified(scan, sample, index, T), sample, index, search, reach)
-        # GICP stopped on a ripple of a flat valley: aligned again from the valley's best fit (in a corridor; a valley
-        # along a road is a plateau, which the place index checks: `on_a_plateau`)
-        if valley is not None and not (self.config.retrieve > 0 and self.on_a_plateau(result, scan)):
-            result, _ = self.flat(*self.verified(scan, sample, index, aligned(valley)), sample, index, search=False)
+        result, tight = settled(T)
+        # from a click (`rough`), a confident track in a valley or moved beyond GICP's reach of it: checked along the
+        # corridor as far as the click may be off
+        if rough and search and c.rough_reach > 0 and result.confidence >= c.track_below and (
+                any(AS_WELL_FITTED in u for u in result.unconstrained)
+                or not self.within_reach(result.transformation, guess)):
+            result = self.along(result, tight, sample, lambda S: settled(aligned(S)))
         t2 = time.perf_counter()
         result.timings = {"refine": t1 - t0, "result": t2 - t1, "total": t2 - t0}
         return result
@@ -676,7 +688,7 @@ class MapLocalizer:
         return result, float(within[-1])
 
     def flat(self, result: RegistrationResult, tight: float, sample: np.ndarray, index: TargetIndex,
-             search: bool = True, reach: float = FLAT_SHIFT_SPACINGS) -> tuple[RegistrationResult, np.ndarray | None]:
+             search: bool = True) -> tuple[RegistrationResult, np.ndarray | None]:
         """A tracked result whose fit is as good moved along the scan's main horizontal axis (a uniform
         corridor or road): `sample` (the tracked scan points, scan frame) seats within one map spacing as
         many points (at least `flat_fit` x `tight`, the pose's own share) at the pose moved
@@ -687,16 +699,10 @@ class MapLocalizer:
         `track_below` are not tested (they are not kept as tracked; off: `flat_fit` 0).
 
         With `search`, a named result also gives the valley's best fit: the pose moved by the multiple of half a
-        spacing, up to `reach` spacings either way (`FLAT_SHIFT_SPACINGS`; a rough guess's `rough_reach`), that
-        seats the most points, when that is more than the pose's own and lies beyond GICP's basin around it
-        (`VALLEY_BASIN`; else None). GICP from a guess off along a corridor can stop on a ripple of the valley's
+        spacing, up to `FLAT_SHIFT_SPACINGS` spacings either way, that seats the most points, when that is more
+        than the pose's own and lies beyond GICP's basin around it (`VALLEY_BASIN`; else None). GICP from a guess off along a corridor can stop on a ripple of the valley's
         floor (a thin wall's other face, the map's voxels) 0.2-0.3 m from the place; from the best fit it reaches
-        the place. From a guess metres off (a click) in a uniform stretch GICP stays near the guess: searched as far
-        as the guess may be off, the place's fit is found farther along. There (a rough guess's search, `reach`
-        beyond `FLAT_SHIFT_SPACINGS`) the best fit, the pose's own included, is moved to only when no pose distinct
-        from it (more than `rival_distance` spacings away) seats `rough_rival` x as many points: else the valley
-        does not tell where in it the scan is, and the pose stays, that fit named as a rival place and the
-        confidence held at 1 - its own."""
+        the place."""
         ratio = self.config.flat_fit
         if ratio <= 0 or tight <= 0 or result.confidence < self.config.track_below:  # an unsure pose is not kept
             return result, None
@@ -717,22 +723,40 @@ class MapLocalizer:
         named = spanning(result, shift * u, 1.0, text)
         if not search:
             return named, None
-        steps = round(2 * reach)
-        inner = [k / 2 for k in range(-steps, steps + 1) if k != 0 and k / 2 not in shares]
+        inner = [k / 2 for k in range(1 - 2 * FLAT_SHIFT_SPACINGS, 2 * FLAT_SHIFT_SPACINGS) if k != 0]
         shares |= dict(zip(inner, seated(inner), strict=True))
         best = max(shares, key=lambda k: (shares[k], -abs(k)))  # the nearer of equally fitting shifts
-        if reach > FLAT_SHIFT_SPACINGS:  # a rough guess: a valley too flat to tell where in it the scan is?
-            fits = {0.0: tight, **shares}
-            top = max(fits, key=lambda k: (fits[k], -abs(k)))
-            rival = max((k for k in fits if abs(k - top) > self.config.rival_distance),
-                        key=lambda k: (fits[k], -abs(k - top)), default=None)
-            if rival is not None and fits[rival] >= self.config.rough_rival * fits[top]:
-                offset = (rival - top) * voxel
-                text = f"{motion('translation along', u)}: {AS_WELL_FITTED} {abs(offset):.2f} m along it, a rival place"
-                return replace(spanning(named, offset * u, 0.25, text),
-                               confidence=below_rival(named.confidence, named.confidence)), None
         beyond = shares[best] > tight and abs(best) > VALLEY_BASIN  # else GICP from it comes back to T
         return named, moved_along(T, u, [best * voxel])[0] if beyond else None
+
+    def along(self, result: RegistrationResult, tight: float, sample: np.ndarray,
+              settled: Callable[[np.ndarray], tuple[RegistrationResult, float]]) -> RegistrationResult:
+        """A track from a rough guess (an operator's click, up to `rough_reach` m off; `tight`: the share of `sample`,
+        its tracked points, it seats within a map spacing) checked along the scan's main horizontal axis (a
+        corridor's direction) as far as the click may be off: from a click metres off GICP stays near it in a
+        uniform stretch, or slides to a look-alike fit (doors as far apart as the place's). The scan is aligned
+        again (`settled`: tracking's GICP, verified, its valley searched) from the pose moved along the axis by
+        every multiple of GICP's correspondence distance (`track_distance` map spacings: their basins cover the
+        stretch) up to `rough_reach` either way; of these and the track, those at least `track_below` confident,
+        the one that seats the most points wins. When a pose distinct from it (`distinct`) seats `rough_rival` x as
+        many, the fits do not tell where along the corridor the scan is: that pose is named as its rival, the
+        covariance widened as for two poses as probable, and the confidence held at 1 - its own."""
+        T, c = result.transformation, self.config
+        step = c.track_distance * self.voxel_size
+        shifts = np.arange(step, c.rough_reach + 1e-9, step)
+        poses = [(result, tight)]
+        for S in moved_along(T, T[:3, :3] @ main_axis(sample), [*shifts, *-shifts]):
+            found, seated = settled(S)
+            if found.confidence >= c.track_below:
+                poses.append((found, seated))
+        best, most = max(poses, key=lambda p: p[1])
+        rivals = [r for r, seated in poses if seated >= c.rough_rival * most
+                  and self.distinct(r.transformation, best.transformation)]
+        if not rivals:
+            return best
+        offset = rivals[0].transformation[:3, 3] - best.transformation[:3, 3]
+        slide = f"{motion('translation along', offset)} to a rival pose {np.linalg.norm(offset):.2f} m away"
+        return replace(spanning(best, offset, 0.25, slide), confidence=below_rival(best.confidence, best.confidence))
 
     def prepare(self) -> None:
         """Build now what localisation would build on first use: with the place index, the index and the
