@@ -195,6 +195,15 @@ def spanning(result: RegistrationResult, offset: np.ndarray, weight: float, text
     return replace(result, covariance=covariance, unconstrained=(*result.unconstrained, text))
 
 
+def rivalled(result: RegistrationResult, rival: RegistrationResult, weight: float, p: float) -> RegistrationResult:
+    """`result` bounded by a distinct `rival` pose of probability `p`: its confidence at most 1 - p
+    (`below_rival`), the rival named among its unconstrained motions ("translation along (x, y, z) to a rival pose
+    d m away") and their offset widening its covariance by `weight` (`spanning`)."""
+    offset = rival.transformation[:3, 3] - result.transformation[:3, 3]
+    slide = f"{motion('translation along', offset)} to a rival pose {np.linalg.norm(offset):.2f} m away"
+    return replace(spanning(result, offset, weight, slide), confidence=below_rival(result.confidence, p))
+
+
 def map_parts(points: np.ndarray, gap: float) -> np.ndarray:
     """Each point's part: the points joined wherever their cells of a grid of size `gap` touch (face, edge
     or corner), numbered by connected component (scipy's csgraph). Points less than `gap` apart are always
@@ -754,9 +763,7 @@ class MapLocalizer:
                   and self.distinct(r.transformation, best.transformation)]
         if not rivals:
             return best
-        offset = rivals[0].transformation[:3, 3] - best.transformation[:3, 3]
-        slide = f"{motion('translation along', offset)} to a rival pose {np.linalg.norm(offset):.2f} m away"
-        return replace(spanning(best, offset, 0.25, slide), confidence=below_rival(best.confidence, best.confidence))
+        return rivalled(best, rivals[0], 0.25, best.confidence)
 
     def prepare(self) -> None:
         """Build now what localisation would build on first use: with the place index, the index and the
@@ -888,9 +895,7 @@ class MapLocalizer:
         p = rival.confidence
         if p <= 1.0 - best.confidence and p < best.confidence / 2:  # it neither bounds nor rivals the pose
             return best
-        offset = rival.transformation[:3, 3] - best.transformation[:3, 3]
-        slide = f"{motion('translation along', offset)} to a rival pose {np.linalg.norm(offset):.2f} m away"
-        return replace(spanning(best, offset, p * (1.0 - p), slide), confidence=below_rival(best.confidence, p))
+        return rivalled(best, rival, p * (1.0 - p), p)
 
     def screen(self, scan: np.ndarray, places: Sequence[np.ndarray]) -> list[RegistrationResult]:
         """The scan registered against every place (point sets), unrefined, in batches of `batch_size`."""
