@@ -21,7 +21,7 @@ with depth 5 (SensorDataQoS), stamped 100 ms apart and sent at that pace, in fou
            click in the wrong place) and the vehicle stands on until tracked twice after it
   kidnap   the robot carried to the start of the building's main corridor (a floor robot, 0.6 m high,
            VLP-32-like); an operator gives its pose there (an `initialpose` 0.3 m and 5 deg off the truth: a click
-           in RViz), since a scan in a corridor is not placed without a guess (`corridor_share`), and it stands
+           in RViz; with --click-ahead, also that far ahead along the corridor), since a scan in a corridor is not placed without a guess (`corridor_share`), and it stands
            until placed again and tracked twice
   walk     along the corridor at 1.5 m/s (0.15 m a scan), --walk-scans of them
 Every scan is cast (6 moving cars and people around it) and serialised before the node starts.
@@ -129,6 +129,8 @@ def parse(argv: list[str] | None = None) -> argparse.Namespace:
     p.add_argument("--drive-step", type=int, default=1, help="m between the drive's scans (1: 10 m/s, 2: 20 m/s)")
     p.add_argument("--walk-scans", type=int, default=150, help="scans of the corridor walk, 0.15 m apart")
     p.add_argument("--misclick", action="store_true", help="an initialpose 500 m off the map after the drive")
+    p.add_argument("--click-ahead", type=float, default=0.0, help="the kidnap phase's initialpose also this far ahead "
+                   "of the robot along the corridor, m (a click metres off)")
     p.add_argument("--moving-start", action="store_true", help="no standing start: placed while it drives")
     p.add_argument("--odometry", action="store_true", help="the node with map.odometry, fed the sensor's odometry")
     p.add_argument("--laps", type=int, default=1, help="the four phases this many times (a soak: is RSS flat?)")
@@ -349,11 +351,11 @@ def misclick(truth: np.ndarray) -> PoseWithCovarianceStamped:
     return matrix_to_pose_msg(T, Header(frame_id=MAP_FRAME), None)
 
 
-def operator_pose(truth: np.ndarray) -> PoseWithCovarianceStamped:
+def operator_pose(truth: np.ndarray, ahead: float = 0.0) -> PoseWithCovarianceStamped:
     """An `initialpose` in the map frame `OPERATOR_OFF` from the robot's true pose (to its left, turned
-    counter-clockwise), as an operator's click in RViz gives it."""
+    counter-clockwise) and `ahead` m along its heading (along the corridor), as an operator's click in RViz gives it."""
     metres, degrees = OPERATOR_OFF
-    T = truth @ make_transform(Rotation.from_euler("z", degrees, degrees=True).as_matrix(), np.array([0.0, metres, 0.0]))
+    T = truth @ make_transform(Rotation.from_euler("z", degrees, degrees=True).as_matrix(), np.array([ahead, metres, 0.0]))
     return matrix_to_pose_msg(T, Header(frame_id=MAP_FRAME), None)
 
 
@@ -406,7 +408,8 @@ def main(argv: list[str] | None = None) -> int:
             for phase in phases:
                 if phase in ("misclick", "kidnap"):  # after the last answer, so that a scan of this phase takes it
                     stream.settle(5.0)
-                    initialpose.publish((misclick if phase == "misclick" else operator_pose)(poses[phase][0]))
+                    truth = poses[phase][0]
+                    initialpose.publish(misclick(truth) if phase == "misclick" else operator_pose(truth, args.click_ahead))
                     time.sleep(0.2)
                 if phase in STANDING:
                     stream.stand(raws[phase], poses[phase], phase, args.stand_timeout)

@@ -102,3 +102,19 @@ def test_the_run_is_drawn_scan_by_scan_from_the_same_answers(bench, tmp_path):
 
     height, width, _ = matplotlib.image.imread(path).shape
     assert (width, height) == (1100, 660)
+
+
+def test_the_operators_click_is_off_to_the_left_turned_and_ahead_along_the_heading(bench):
+    """The kidnap phase's `initialpose`: `OPERATOR_OFF` to the robot's left and turned, and `--click-ahead` m along
+    its heading; read back by the node's own conversion."""
+    from genreg_ros.conversions import msg_to_matrix
+
+    heading = np.radians(30.0)
+    truth = make_transform(np.array([[np.cos(heading), -np.sin(heading), 0.0], [np.sin(heading), np.cos(heading), 0.0],
+                                     [0.0, 0.0, 1.0]]), np.array([5.0, -2.0, 0.6]))
+    left, degrees = bench.OPERATOR_OFF
+    for ahead in (0.0, 2.0):
+        T = msg_to_matrix(bench.operator_pose(truth, ahead).pose)
+        local = np.linalg.inv(truth) @ T  # the click in the robot's frame
+        assert np.allclose(local[:3, 3], [ahead, left, 0.0], atol=1e-9)
+        assert np.degrees(np.arctan2(local[1, 0], local[0, 0])) == pytest.approx(degrees)
