@@ -747,7 +747,8 @@ class MapLocalizer:
         again (`settled`: tracking's GICP, verified, its valley searched) from the pose moved along the axis by
         every multiple of GICP's correspondence distance (`track_distance` map spacings: their basins cover the
         stretch) up to `rough_reach` either way; of these and the track, those at least `track_below` confident,
-        the one that seats the most points wins. When a pose distinct from it (`distinct`) seats `rough_rival` x as
+        the one that seats the most points wins (within a map spacing; of equals, within two: a valley's ripples
+        seat alike within one). When a pose distinct from it (`distinct`) seats `rough_rival` x as
         many, the fits do not tell where along the corridor the scan is: that pose is named as its rival, the
         covariance widened as for two poses as probable, and the confidence held at 1 - its own."""
         T, c = result.transformation, self.config
@@ -758,7 +759,7 @@ class MapLocalizer:
             found, seated = settled(S)
             if found.confidence >= c.track_below:
                 poses.append((found, seated))
-        best, most = max(poses, key=lambda p: p[1])
+        best, most = max(poses, key=lambda p: (p[1], p[0].verification["log_share_2"]))  # then within two spacings
         rivals = [r for r, seated in poses if seated >= c.rough_rival * most
                   and self.distinct(r.transformation, best.transformation)]
         if not rivals:
