@@ -628,8 +628,9 @@ class MapLocalizer:
         (`local`), verified and built into a result as a registration is (`result.build_result`: inlier ratio
         NaN, taken as 1: no network pass; no generated clouds; `start` "initial_guess"; `verified`); a result as
         well fitted moved along the scan's main axis is named and, with `search`, aligned again from that
-        valley's best fit (`flat`; from a `rough` guess searched as far as `rough_reach`) unless it lies on a
-        plateau along a road (`on_a_plateau`). `geometry`: the
+        valley's best fit (`flat`) unless it lies on a plateau along a road (`on_a_plateau`); from a `rough` guess
+        (a click), a confident track in such a valley or beyond GICP's reach is checked along the corridor as far
+        as `rough_reach` (`along`). `geometry`: the
         scan's (centroid, radius) from `scan_geometry`, if known (used only to find the local map). Its confidence is the calibration's tracking
         model's (`tracking_confidence`; without one, uncalibrated as `genreg_core.result` says). None when the
         map holds too few points around the guess, or when the guess puts less than `MIN_NEAR_SHARE` of the
