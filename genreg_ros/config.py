@@ -393,7 +393,7 @@ MAP_OVERRIDES: dict[str, Any] = {**SCENE_OVERRIDES, "workers": 1, "map.enabled":
 # with structure within 4 m was 0.00-0.37 for the training campuses' road scans, 0.53-0.85 for their corridor scans);
 # an initialpose checked 4 m either way along a corridor (rough_reach: on the training campuses, surveyed every 3 m and
 # every metre in corridors, corridor tracks from clicks 2 m and 10 deg off were never placed and 1-4 of 40 per map
-# stayed 1.4-3.1 m off at 0.74-0.91; aligned again from poses along the corridor, 22-32 of 40 placed, none wrong;
+# stayed 1.4-3.1 m off at 0.74-0.91; aligned again from poses along the corridor, 18-24 of 40 placed, none wrong;
 # of clicks 0.3-2 m off the best pose was right for 419 and 0.26-0.30 m off for 11; a right one's distinct rival
 # seated at most 0.970 of its points, a wrong one's 0.839: rough_rival 0.98 holds a tie only)
 LIDAR_MAP_OVERRIDES: dict[str, Any] = {**MAP_OVERRIDES, "map.localization.retrieve": 8,

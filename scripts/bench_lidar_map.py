@@ -86,7 +86,7 @@ import subprocess
 import sys
 import tempfile
 import time
-from collections.abc import Callable, Iterable
+from collections.abc import Callable, Iterable, Sequence
 from multiprocessing.connection import Connection
 from pathlib import Path
 from typing import Any, Self
@@ -651,6 +651,9 @@ class Bench:
                         f"average {load_text()}.", "")
         self.report.table(["guess off by", "scans", "placed", "confident-wrong", "TE median m",
                            "largest error along the corridor, accepted m", "confident-wrong: TE at confidence", "ms median"], rows)
+        clicks = [r for r in self.report.records if r["section"] == "track-indoor"]
+        path = plot_clicks(self.figures / "lidar_initialpose.png", clicks, a.indoor_guesses, w.key)
+        self.report.add(f"Figure: {path}.", "")
 
     def run_walk_indoor(self) -> None:
         a = self.args
@@ -939,6 +942,42 @@ def partial_map(world: lw.World, poses: np.ndarray, edge: float, cache_dir: Path
 
 
 # ----------------------------------------------------------------------------- figures
+def plot_clicks(path: Path, recs: list[dict[str, Any]], guesses: Sequence[tuple[float, float]], key: str) -> Path:
+    """track-indoor's clicks: per offset, the corridor scans accepted right and confidently wrong (left); every
+    accepted pose's error (log scale) against its click's offset, the placed bound drawn (right)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    offsets = [m for m, _ in guesses]
+    kinds = [f"{m:g} m, {d:g} deg" for m, d in guesses]
+    by = [[r for r in recs if r["kind"] == k] for k in kinds]
+    fig, (left, right) = plt.subplots(1, 2, figsize=(11, 4.5))
+    right_ = [sum(r["placed"] and r["confidence"] >= GATE for r in rs) for rs in by]
+    wrong = [sum(r["confident_wrong"] for r in rs) for rs in by]
+    x = np.arange(len(kinds))
+    left.bar(x - 0.2, right_, 0.4, color="C2", label="accepted, right")
+    left.bar(x + 0.2, wrong, 0.4, color="C3", label="accepted, wrong (confidence >= 0.5)")
+    left.set(xticks=x, xticklabels=[f"{m:g} m\n{d:g} deg" for m, d in guesses], ylabel="corridor scans",
+             xlabel="click off the truth", title=f"initialpose clicks in {key}'s corridors")
+    left.legend(fontsize=8)
+    for m, rs in zip(offsets, by, strict=True):
+        accepted = [r for r in rs if r["confidence"] >= GATE]
+        jitter = np.random.default_rng(0).uniform(-0.04, 0.04, len(accepted))
+        right.scatter(m + jitter, [max(r["te_m"], 1e-3) for r in accepted], s=10,
+                      c=["C3" if r["confident_wrong"] else "C2" for r in accepted])
+    right.axhline(MAX_TE_M, color="0.4", ls=":", label=f"placed: TE < {MAX_TE_M:g} m")
+    right.set(yscale="log", xlabel="click off the truth (m)", ylabel="accepted pose's translation error (m)",
+              title="every accepted pose")
+    right.legend(fontsize=8)
+    fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+    return path
+
+
 def plot_curve(path: Path, points: list[dict[str, Any]], seed: int) -> Path:
     """Localisation time (median, p95 bar) and retrieval time against map area, log-log, with linear-growth
     references through the smallest map's point; index build time on a second axis."""
