@@ -655,26 +655,23 @@ class MapLocalizer:
             return gicp.align(sample, start, max_distance=c.track_distance * voxel,
                               max_iterations=iterations or c.track_iterations, threads=self.threads)
 
-        def settled(T: np.ndarray) -> tuple[RegistrationResult, float]:
-            """A GICP pose verified (and its tight share); in a flat valley, aligned again from the valley's best fit
-            (a corridor's: GICP stopped on a ripple; a valley along a road is a plateau, which the place index
-            checks: `on_a_plateau`)."""
-            result, tight = self.verified(scan, sample, index, T)
-            result, valley = self.flat(result, tight, sample, index, search)
+        def settled(T: np.ndarray) -> RegistrationResult:
+            """A GICP pose verified; in a flat valley, aligned again from the valley's best fit (a corridor's: GICP
+            stopped on a ripple; a valley along a road is a plateau, which the place index checks: `on_a_plateau`)."""
+            result, valley = self.flat(*self.verified(scan, sample, index, T), sample, index, search)
             if valley is not None and not (self.config.retrieve > 0 and self.on_a_plateau(result, scan)):
-                result, tight = self.verified(scan, sample, index, aligned(valley))
-                result, _ = self.flat(result, tight, sample, index, search=False)
-            return result, tight
+                result, _ = self.flat(*self.verified(scan, sample, index, aligned(valley)), sample, index, search=False)
+            return result
 
         T = aligned(guess)
         t1 = time.perf_counter()
-        result, tight = settled(T)
+        result = settled(T)
         # from a click (`rough`), a confident track in a valley or moved beyond GICP's reach of it: checked along the
         # corridor as far as the click may be off
         if rough and search and c.rough_reach > 0 and result.confidence >= c.track_below and (
                 any(AS_WELL_FITTED in u for u in result.unconstrained)
                 or not self.within_reach(result.transformation, guess)):
-            result = self.along(result, tight, sample, lambda S: settled(aligned(S)))
+            result = self.along(result, sample, lambda S: settled(aligned(S)))
         t2 = time.perf_counter()
         result.timings = {"refine": t1 - t0, "result": t2 - t1, "total": t2 - t0}
         return result
@@ -739,29 +736,25 @@ class MapLocalizer:
         beyond = shares[best] > tight and abs(best) > VALLEY_BASIN  # else GICP from it comes back to T
         return named, moved_along(T, u, [best * voxel])[0] if beyond else None
 
-    def along(self, result: RegistrationResult, tight: float, sample: np.ndarray,
-              settled: Callable[[np.ndarray], tuple[RegistrationResult, float]]) -> RegistrationResult:
-        """A track from a rough guess (an operator's click, up to `rough_reach` m off; `tight`: the share of `sample`,
-        its tracked points, it seats within a map spacing) checked along the scan's main horizontal axis (a
-        corridor's direction) as far as the click may be off: from a click metres off GICP stays near it in a
+    def along(self, result: RegistrationResult, sample: np.ndarray,
+              settled: Callable[[np.ndarray], RegistrationResult]) -> RegistrationResult:
+        """A track from a rough guess (an operator's click, up to `rough_reach` m off; `sample`: its tracked points)
+        checked along the scan's main horizontal axis (a corridor's direction) as far as the click may be off: from a click metres off GICP stays near it in a
         uniform stretch, or slides to a look-alike fit (doors as far apart as the place's). The scan is aligned
         again (`settled`: tracking's GICP, verified, its valley searched) from the pose moved along the axis by
         every multiple of GICP's correspondence distance (`track_distance` map spacings: their basins cover the
         stretch) up to `rough_reach` either way; of these and the track, those at least `track_below` confident,
-        the one that seats the most points wins (within a map spacing; of equals, within two: a valley's ripples
-        seat alike within one). When a pose distinct from it (`distinct`) seats `rough_rival` x as
+        the one that seats the most points wins (within a map spacing, its `tight_fitness`; of equals, within two:
+        a valley's ripples seat alike within one). When a pose distinct from it (`distinct`) seats `rough_rival` x as
         many, the fits do not tell where along the corridor the scan is: that pose is named as its rival, the
         covariance widened as for two poses as probable, and the confidence held at 1 - its own."""
         T, c = result.transformation, self.config
         step = c.track_distance * self.voxel_size
         shifts = np.arange(step, c.rough_reach + 1e-9, step)
-        poses = [(result, tight)]
-        for S in moved_along(T, T[:3, :3] @ main_axis(sample), [*shifts, *-shifts]):
-            found, seated = settled(S)
-            if found.confidence >= c.track_below:
-                poses.append((found, seated))
-        best, most = max(poses, key=lambda p: (p[1], p[0].verification["log_share_2"]))  # then within two spacings
-        rivals = [r for r, seated in poses if seated >= c.rough_rival * most
+        found = [settled(S) for S in moved_along(T, T[:3, :3] @ main_axis(sample), [*shifts, *-shifts])]
+        poses = [result, *(r for r in found if r.confidence >= c.track_below)]
+        best = max(poses, key=lambda r: (r.tight_fitness, r.verification["log_share_2"]))  # then within two spacings
+        rivals = [r for r in poses if r.tight_fitness >= c.rough_rival * best.tight_fitness
                   and self.distinct(r.transformation, best.transformation)]
         if not rivals:
             return best
