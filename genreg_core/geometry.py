@@ -11,6 +11,8 @@ Conventions (everywhere in genreg):
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+
 import numpy as np
 import torch
 from scipy.spatial.transform import RigidTransform, Rotation
@@ -66,6 +68,16 @@ def extrapolate(T_prev: np.ndarray, T_last: np.ndarray, ratio: float) -> np.ndar
         return rigid(last @ np.linalg.matrix_power(motion, int(ratio)))
     coords = RigidTransform.from_matrix(motion).as_exp_coords()
     return rigid(last @ RigidTransform.from_exp_coords(ratio * coords).as_matrix())
+
+
+def moved_along(T: np.ndarray, direction: np.ndarray, distances: Sequence[float]) -> list[np.ndarray]:
+    """T (4x4) with its translation moved by each of `distances` along the unit `direction` (its frame's)."""
+    moved = []
+    for d in distances:
+        S = T.copy()
+        S[:3, 3] += d * direction
+        moved.append(S)
+    return moved
 
 
 def rigid(T: np.ndarray) -> np.ndarray:

@@ -84,7 +84,7 @@ from genreg_core.checkpoint import resized
 from genreg_core.confidence import MAP_CALIBRATION, MAP_FEATURES, SPACINGS, map_features
 from genreg_core.config import SCENE_MODEL, SCENE_REGISTRATION, LocalizationConfig
 from genreg_core.errors import ConfigError, GenRegError, TooFewPointsError
-from genreg_core.geometry import apply_transform, make_transform
+from genreg_core.geometry import apply_transform, make_transform, moved_along
 from genreg_core.place_index import ENCLOSING_REACH, IndexGeometry, PlaceIndex, hit_pose
 from genreg_core.place_index import VERSION as INDEX_VERSION
 from genreg_core.prepare import check_transform, robust_extent, validate_cloud
@@ -92,13 +92,16 @@ from genreg_core.preprocess import voxel_downsample
 from genreg_core.refine import GICPTarget, VoxelTarget, gicp_target
 from genreg_core.registration import COARSE_ITERATIONS, Registrar, distinct_poses
 from genreg_core.result import (
+    AS_WELL_FITTED,
     TRACKING_CALIBRATION,
     Aligned,
     Confidence,
     RegistrationResult,
     Verified,
+    as_well_fitted,
     below_rival,
     build_result,
+    spanning,
 )
 from genreg_core.score import (
     FITNESS_SPACINGS,
@@ -122,7 +125,6 @@ WARM_UP_POINTS = 20_000  # `MapLocalizer.warm_up`'s scan: this many map points
 # tracked and every retrieved candidate had 0.48 or more (1,052 alignments: drives at 10 and 20 m/s, corridors
 # from guesses 1 m off, off-map scans); a guess moved on at the speed of a kidnap 0.001
 MIN_NEAR_SHARE = 0.05
-AS_WELL_FITTED = "as well fitted"  # `MapLocalizer.flat`'s name of a flat axis among a result's unconstrained motions
 IN_A_CORRIDOR = "place: a corridor alike to others"  # `retrieved`'s name of a scan enclosed as in a corridor
 FLAT_SHIFT_SPACINGS = 3  # a tracked pose's fit is tested this many map spacings along the scan's main axis
 # (`MapLocalizer.flat`), and a flat valley's best fit searched as far, half a spacing at a time: on the training
@@ -173,26 +175,6 @@ def main_axis(points: np.ndarray) -> np.ndarray:
     xy = points[:, :2] - points[:, :2].mean(axis=0)
     axis = np.linalg.eigh(xy.T @ xy)[1][:, -1]
     return np.array([axis[0], axis[1], 0.0])
-
-
-def moved_along(T: np.ndarray, direction: np.ndarray, distances: Sequence[float]) -> list[np.ndarray]:
-    """T (4x4) with its translation moved by each of `distances` along the unit `direction` (its frame's)."""
-    moved = []
-    for d in distances:
-        S = T.copy()
-        S[:3, 3] += d * direction
-        moved.append(S)
-    return moved
-
-
-def spanning(result: RegistrationResult, offset: np.ndarray, weight: float, text: str) -> RegistrationResult:
-    """`result` with `text` among its unconstrained motions and its covariance widened along a translation
-    `offset` (map frame): `weight` offset offset^T added to the translation block (a mixture of two poses `offset`
-    apart, of probabilities p and 1 - p: weight p (1 - p); a flat valley spanning it: 1)."""
-    covariance = None if result.covariance is None else result.covariance.copy()
-    if covariance is not None:
-        covariance[:3, :3] += weight * np.outer(offset, offset)
-    return replace(result, covariance=covariance, unconstrained=(*result.unconstrained, text))
 
 
 def rivalled(result: RegistrationResult, rival: RegistrationResult, weight: float, p: float) -> RegistrationResult:
@@ -726,8 +708,7 @@ class MapLocalizer:
         if max(shares.values()) < ratio * tight:
             return result, None
         shift = FLAT_SHIFT_SPACINGS * voxel
-        text = f"{motion('translation along', u)}: {AS_WELL_FITTED} {shift:.2f} m along it"
-        named = spanning(result, shift * u, 1.0, text)
+        named = as_well_fitted(result, shift * u)
         if not search:
             return named, None
         inner = [k / 2 for k in range(1 - 2 * FLAT_SHIFT_SPACINGS, 2 * FLAT_SHIFT_SPACINGS) if k != 0]

@@ -18,7 +18,8 @@ Stages of `register_many` (`register` is one pair of it):
                   calibrated probability of being right (`result.Confidence`)
     8. choose     `Registrar.choose`: the candidate that verifies best replaces the pose so far
     9. result     `Registrar.result` -> `result.build_result`: scores, covariance, unconstrained motions, the
-                  confidence; input units
+                  confidence; input units; with `slide_fit`, a pose as well fitted slid along the source's main
+                  axis (`Verifier.slid`: a road, a corridor) named and held (`Registrar.slide_checked`)
    10. passes     `Registrar.more_passes`: while unsure, stages 1-9 again on other subsamples; the most probable wins
 Conventions (frames, units, T_target_source): `genreg_core.geometry`. `transformation` is the input's
 target_from_source; internally everything runs in the prepared pair's normalised frame.
@@ -53,8 +54,8 @@ from genreg_core.pdsac import (
 from genreg_core.prepare import PreparedPair, model_frame_config, prepare_pair
 from genreg_core.refine import guard_icp, refine
 from genreg_core.refinement import refinement
-from genreg_core.result import Confidence, RegistrationResult, below_rival, build_result
-from genreg_core.verify import Verifier
+from genreg_core.result import Confidence, RegistrationResult, as_well_fitted, below_rival, build_result
+from genreg_core.verify import SLIDE_SPACINGS, Verifier
 
 # With an initial guess, another pose replaces it only when its fitness (share of source points overlapping
 # the target) is higher by more than this: a guess the user trusts is not traded for an equal-looking pose.
@@ -434,7 +435,7 @@ class Registrar:
         origin_n = (T[:3, 3] - p.offset) / p.scale  # the pose's position, normalised frame
         a_gen = p.points_to_input_units(est.source_generated[k].double().cpu().numpy())
         b_gen = p.points_to_input_units(est.target_generated[k].double().cpu().numpy())
-        return build_result(
+        result = build_result(
             T, check.verify(T_n, choice.inlier_ratio, choice.rival), check.aligned(T_n, origin_n), check.confidence,
             start=choice.start,
             aligned_source=p.aligned_source(T),  # float32, one product
@@ -442,3 +443,20 @@ class Registrar:
             source_generated=a_gen.astype(np.float32),
             target_generated=apply_transform(np.linalg.inv(p.guess), b_gen).astype(np.float32),
         )
+        return self.slide_checked(result, check, T_n, p.scale)
+
+    def slide_checked(self, result: RegistrationResult, check: Verifier, T_n: np.ndarray, scale: float
+                      ) -> RegistrationResult:
+        """With `slide_fit`, a result whose source seats as well moved along its main axis (`Verifier.slid`: a road
+        or a corridor alike along its length, where a pose slid metres along it fits as well as the right one)
+        named as well fitted along it (`result.as_well_fitted`) and held at 1 - its confidence; the slid share in
+        its `verification` ("slide_share")."""
+        fit = self.config.slide_fit
+        if fit <= 0:
+            return result
+        axis, share = check.slid(T_n)
+        result.verification["slide_share"] = share
+        if share < fit:
+            return result
+        held = as_well_fitted(result, axis * SLIDE_SPACINGS * check.pair.target_index.spacing * scale)
+        return replace(held, confidence=below_rival(held.confidence, held.confidence))

@@ -29,7 +29,7 @@ called without it scores the same way.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -39,11 +39,13 @@ from genreg_core.score import (
     COVARIANCE_FLOOR_RAD,
     COVARIANCE_INFLATION,
     TargetIndex,
+    motion,
     overlap_score,
     pose_covariance,
     unconstrained_directions,
 )
 
+AS_WELL_FITTED = "as well fitted"  # the name of a flat axis among a result's unconstrained motions (`as_well_fitted`)
 TRACKING_CALIBRATION = "map_tracking"  # the calibration's key of map tracking's model (`ConfidenceModel.by_refinement`)
 # What a final pose grew from (`RegistrationResult.start`): GenReg's estimate (or another PDSAC mode, or another
 # pass), the given initial guess, the guard's refinement from identity (no guess given), the classical fallback.
@@ -175,3 +177,22 @@ def build_result(transformation: np.ndarray, verified: Verified, aligned: Aligne
         unconstrained=unconstrained,
         verification=dict(zip(FEATURES, verified.features(constraint).tolist(), strict=True)),
     )
+
+
+def spanning(result: RegistrationResult, offset: np.ndarray, weight: float, text: str) -> RegistrationResult:
+    """`result` with `text` among its unconstrained motions and its covariance widened along a translation
+    `offset` (target frame, input units): `weight` offset offset^T added to the translation block (a mixture of
+    two poses `offset` apart, of probabilities p and 1 - p: weight p (1 - p); a flat valley spanning it: 1)."""
+    covariance = None if result.covariance is None else result.covariance.copy()
+    if covariance is not None:
+        covariance[:3, :3] += weight * np.outer(offset, offset)
+    return replace(result, covariance=covariance, unconstrained=(*result.unconstrained, text))
+
+
+def as_well_fitted(result: RegistrationResult, offset: np.ndarray) -> RegistrationResult:
+    """`result` whose source seats about as well moved by the translation `offset` (target frame, input units: a
+    road's or a corridor's direction, where the fit does not tell where along it the source lies): the axis named
+    among its unconstrained motions ("translation along (x, y, z): as well fitted d m along it") and the
+    covariance widened by offset offset^T (`spanning`). Its confidence is the caller's to hold."""
+    text = f"{motion('translation along', offset)}: {AS_WELL_FITTED} {np.linalg.norm(offset):.2f} m along it"
+    return spanning(result, offset, 1.0, text)

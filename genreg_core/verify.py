@@ -19,12 +19,13 @@ import numpy as np
 import torch
 
 from genreg_core.confidence import SPACINGS, features
-from genreg_core.geometry import apply_transform
+from genreg_core.geometry import apply_transform, moved_along
 from genreg_core.prepare import PreparedPair
 from genreg_core.result import Aligned, Confidence, Verified
 from genreg_core.score import FITNESS_SPACINGS, TIGHT_SPACINGS, overlap_score
 
 REMEMBERED_POSES = 8  # a Verifier keeps the squared distances of this many poses (a pair's candidates)
+SLIDE_SPACINGS = 2  # `Verifier.slid` moves a pose this many target spacings along the source's main axis
 
 
 @dataclass
@@ -73,6 +74,18 @@ class Verifier:
         three: there a wrong pose that pushes a partial source's unmatched part onto the target can
         overlap more than the true one; MODEL_CARD "guard")."""
         return self.tight(T_a) > self.tight(T_b) + margin
+
+    def slid(self, T: np.ndarray) -> tuple[np.ndarray, float]:
+        """(the main axis of the source moved by T: the unit principal axis of its points, a road's or a corridor's
+        direction; the larger share of the source within one target spacing at T moved `SLIDE_SPACINGS` spacings
+        along it either way, over T's own `tight`): about 1 or more where the target is alike along the axis, so
+        the fit does not tell where along it the source lies; 0 when T seats no point."""
+        moved = apply_transform(T, self.pair.dense_src.astype(np.float64))
+        centred = moved - moved.mean(axis=0)
+        axis = np.linalg.eigh(centred.T @ centred)[1][:, -1]
+        own, shift = self.tight(T), SLIDE_SPACINGS * self.pair.target_index.spacing
+        slid = max(self.tight(S) for S in moved_along(T, axis, (shift, -shift)))
+        return axis, slid / own if own > 0 else 0.0
 
     def shares(self, T: np.ndarray) -> np.ndarray:
         """The shares of the source within each of `confidence.SPACINGS` target spacings."""

@@ -180,11 +180,11 @@ from genreg_core.config import SCENE_MODEL, SCENE_REGISTRATION, LocalizationConf
 from genreg_core.data import lidar_world as lw
 from genreg_core.data.synthetic_lidar import LidarSensor, sensor_pose
 from genreg_core.geometry import apply_transform
-from genreg_core.localization import AS_WELL_FITTED, MapLocalizer
+from genreg_core.localization import MapLocalizer
 from genreg_core.metrics import transform_errors
 from genreg_core.preprocess import voxel_downsample
 from genreg_core.registration import Registrar
-from genreg_core.result import RegistrationResult
+from genreg_core.result import AS_WELL_FITTED, RegistrationResult
 from genreg_ros.config import NodeConfig, profile_config
 from genreg_ros.map_state import LOST, Localization, placement, scan_start
 from genreg_ros.policy import judge

@@ -416,3 +416,32 @@ def test_the_refinement_registry_is_the_methods_choices_and_hands_each_its_targe
         refinement("vgicp")
     with pytest.raises(ConfigError, match="refine.method must be one of"):
         RefineConfig(method="vgicp")
+
+
+def test_a_pose_is_as_well_fitted_slid_along_a_uniform_corridor_and_not_along_a_cluttered_one():
+    """`Verifier.slid` against scipy: the source's share within one target spacing at the pose moved two spacings
+    along the source's main axis, over its own. Two walls 20 m long along x, the target's points on a 0.1 m grid,
+    the source's drawn at random on them: the axis is x and the slid pose seats as many points (a corridor alike
+    along its length). With boxes along the walls (each scan's points drawn in them): far fewer."""
+    from scipy.spatial import cKDTree
+
+    from genreg_core.verify import SLIDE_SPACINGS, Verifier
+
+    rng = np.random.default_rng(4)
+    x, z = np.meshgrid(np.arange(-10.0, 10.0, 0.1), np.arange(0.0, 2.5, 0.1))
+    grid = np.concatenate([np.c_[x.ravel(), np.full(x.size, y), z.ravel()] for y in (-1.5, 1.5)])
+    drawn = np.c_[rng.uniform(-10, 10, 6000), rng.choice([-1.5, 1.5], 6000), rng.uniform(0, 2.4, 6000)]
+    boxes = np.c_[rng.uniform(-9, 9, 40), rng.choice([-1.3, 1.3], 40), rng.uniform(0.3, 2.0, 40)]
+
+    def clutter() -> np.ndarray:
+        return np.concatenate([c + rng.uniform(-0.08, 0.08, (150, 3)) for c in boxes])
+
+    for target, source, uniform in ((grid, drawn, True), (np.r_[grid, clutter()], np.r_[drawn, clutter()], False)):
+        p = prepare_pair(source, target, None, num_points=64, refine_points=20000, min_points=16, seed=0)
+        check = Verifier(p, torch.zeros(64, 3), torch.zeros(64, 3), 0.01, None)
+        axis, share = check.slid(np.eye(4))
+        assert abs(axis[0]) > 0.99  # the corridor's length
+        tree, spacing = cKDTree(p.dense_tgt), p.target_index.spacing
+        within = [np.mean(tree.query(p.dense_src + s * SLIDE_SPACINGS * spacing * axis)[0] < spacing) for s in (0, 1, -1)]
+        assert share == pytest.approx(max(within[1:]) / within[0], abs=1e-6)
+        assert share > 0.95 if uniform else share < 0.8, share
