@@ -1080,3 +1080,31 @@ def test_cross_process_large_clouds_with_both_qos_settings(ns, reliability, tmp_
     assert rc == 0, out
     assert "XMLPARSER" not in out and "Traceback" not in out, out
 
+
+
+def test_the_lidar_params_file_places_street_scans_9_m_apart_and_rejects_a_slide_naming_the_street(ns, tmp_path):
+    """config/genreg_lidar.yaml as shipped (its own process): street scans 9 m apart, the source turned, placed
+    within 2 deg / 0.3 m of the truth; a pair 15 m apart that the scans alone cannot place (the registration lays
+    them 21 m off, as well fitted slid along the street) rejected, its status naming the street's direction."""
+    from test_synthetic_lidar import named_axis, street_pair
+
+    from genreg_ros.config import CONFIG_DIR
+
+    pairs = [street_pair(np.random.default_rng(seed), d) for seed, d in ((0, 9.0), (4, 15.0))]
+    with node_process(ns, tmp_path / "node.log", {"diagnostics.period": 0.2},
+                      params_file=CONFIG_DIR / "genreg_lidar.yaml") as (h, _, _):
+        wait_subscribed(h, h.pub_source, h.pub_target)
+        messages = [(_xyz_msg(s, 3000.0 + k, SRC_FRAME), _xyz_msg(t, 3000.0 + k, TGT_FRAME))
+                    for k, (s, t, *_) in enumerate(pairs)]
+        for source, target in messages:
+            h.send(source, target)
+            h.result_for(source.header, timeout=30.0)
+        _, tf = h.wait_output(messages[0][0].header)
+        rot_err, trans_err = errors(msg_to_matrix(tf), pairs[0][2])
+        assert rot_err < 2.0 and trans_err < 0.3, (rot_err, trans_err)
+        status = h.result_for(messages[1][0].header)
+        v = diag_values(status)
+        assert status.level == DiagnosticStatus.ERROR and v["published"] == "false", status.message
+        assert v["reason"] == "failed.low_confidence_rejected" and float(v["confidence"]) < 0.5
+        named = [u for u in v["unconstrained"].split("; ") if "as well fitted" in u]
+        assert named and abs(named_axis(named[0]) @ pairs[1][3]) > 0.97, v["unconstrained"]

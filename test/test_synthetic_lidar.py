@@ -207,18 +207,11 @@ def test_the_lidar_profile_places_street_scans_metres_apart_or_holds_them_named_
     0.5 with the street's direction named as the axis it is as well fitted slid along (the covariance widened
     along it)."""
     registrar, pre = lidar_profile
-    scene, sensor = make_scene("street"), default_sensor("street")
     rng = np.random.default_rng(3)
     right = 0
     for d in (9.0, 12.0, 15.0):
         for _ in range(4):
-            x0 = rng.uniform(-25.0, 25.0 - d)
-            pose_target = sensor_pose(x0, rng.uniform(-1, 1), 1.8, rng.uniform(-0.1, 0.1))
-            pose_source = sensor_pose(x0 + d, rng.uniform(-1, 1), 1.8, rng.uniform(-0.1, 0.1))
-            target = lidar_scan(scene, pose_target, rng, sensor).points
-            K = sensor_pose(0.0, 0.0, 0.0, rng.uniform(-np.pi, np.pi))  # a turn about the sensor's z axis
-            source = apply_transform(K, lidar_scan(scene, pose_source, rng, sensor).points.astype(np.float64))
-            truth = np.linalg.inv(pose_target) @ pose_source @ np.linalg.inv(K)
+            source, target, truth, street = street_pair(rng, d)
             result = registrar.register(preprocess(source, pre), preprocess(target, pre))
             re, te = transform_errors(result.transformation, truth)
             named = [u for u in result.unconstrained if "as well fitted" in u]
@@ -226,8 +219,25 @@ def test_the_lidar_profile_places_street_scans_metres_apart_or_holds_them_named_
                 assert re < 2.0 and te < 0.3 and not named, f"{d} m: RE {re:.2f} deg, TE {te:.2f} m at {result.confidence:.2f}"
                 right += 1
                 continue
-            street = np.linalg.inv(pose_target)[:3, :3] @ np.array([1.0, 0.0, 0.0])  # the street's x, target frame
-            axis = np.array([float(v) for v in named[0].split("(")[1].split(")")[0].split(",")])
-            assert abs(axis @ street) > 0.97, named
+            assert abs(named_axis(named[0]) @ street) > 0.97, named
             assert np.sqrt(result.covariance[0, 0] + result.covariance[1, 1]) > 0.8  # at least the slide, m
     assert right >= 7  # of 12 (8 when written: all four 9 m pairs)
+
+
+def street_pair(rng: np.random.Generator, d: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """(source, target, T_target_source, the street's direction in the target frame): scans of the street scene `d`
+    m apart along it, each heading along it within 6 deg, the source turned about its z axis by a uniform yaw."""
+    scene, sensor = make_scene("street"), default_sensor("street")
+    x0 = rng.uniform(-25.0, 25.0 - d)
+    pose_target = sensor_pose(x0, rng.uniform(-1, 1), 1.8, rng.uniform(-0.1, 0.1))
+    pose_source = sensor_pose(x0 + d, rng.uniform(-1, 1), 1.8, rng.uniform(-0.1, 0.1))
+    target = lidar_scan(scene, pose_target, rng, sensor).points.astype(np.float64)
+    K = sensor_pose(0.0, 0.0, 0.0, rng.uniform(-np.pi, np.pi))  # a turn about the sensor's z axis
+    source = apply_transform(K, lidar_scan(scene, pose_source, rng, sensor).points.astype(np.float64))
+    truth = np.linalg.inv(pose_target) @ pose_source @ np.linalg.inv(K)
+    return source, target, truth, np.linalg.inv(pose_target)[:3, :3] @ np.array([1.0, 0.0, 0.0])
+
+
+def named_axis(motion: str) -> np.ndarray:
+    """The unit direction of an unconstrained motion's text ("translation along (x, y, z): ...")."""
+    return np.array([float(v) for v in motion.split("(")[1].split(")")[0].split(",")])
