@@ -15,6 +15,11 @@ calibration (`confidence.ConfidenceModel`): its model for how the pose was found
 refinement method, `refinement.REFINEMENTS`, or `TRACKING_CALIBRATION` for map tracking) over the
 verification features, at most 1 - the rival's probability, times the degeneracy factor.
 
+A pose that the geometry leaves free to slide along an axis (a road, a corridor: `MapLocalizer.flat` in map
+tracking, `Registrar.slide_checked` in registration) is named by `as_well_fitted` ("translation along (x, y, z): as
+well fitted d m along it") and its covariance widened along the axis (`spanning`, which also widens it towards a
+distinct rival pose); whether its confidence is held is its caller's rule.
+
 Uncalibrated (one behaviour, documented here): a checkpoint without a calibration, or whose calibration
 has no model for the refinement in use, gets the overlap score instead (`score.overlap_score`: the
 geometric mean of fitness, tight fitness and inlier ratio; 1 for a pose without generated
