@@ -288,7 +288,7 @@ class RegistrationConfig:
     estimate_threads: int = setting(1, "Torch intra-op threads while the network and PDSAC run; 0: torch's own "
                                     "setting. One is faster on small clouds (MODEL_CARD.md).", low=0, high=256)
     slide_fit: float = setting(0.0, "A pose whose source seats at least this share of its own tight fitness (within one "
-                               "target spacing) moved two target spacings along the aligned source's main axis, either "
+                               "target spacing) moved four target spacings along the aligned source's main axis, either "
                                "way, is named as well fitted along it (a road or a corridor alike along its length) and "
                                "held at 1 - its confidence, at most 0.5; 0: off.", low=0.0, high=1.0)
 

@@ -25,7 +25,8 @@ from genreg_core.result import Aligned, Confidence, Verified
 from genreg_core.score import FITNESS_SPACINGS, TIGHT_SPACINGS, overlap_score
 
 REMEMBERED_POSES = 8  # a Verifier keeps the squared distances of this many poses (a pair's candidates)
-SLIDE_SPACINGS = 2  # `Verifier.slid` moves a pose this many target spacings along the source's main axis
+SLIDE_SPACINGS = 4  # `Verifier.slid` moves a pose this many target spacings along the source's main axis (MODEL_CARD
+# "LiDAR pairs metres apart": 2 held a third of the training campuses' right consecutive drive scans)
 
 
 @dataclass

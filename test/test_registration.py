@@ -419,7 +419,7 @@ def test_the_refinement_registry_is_the_methods_choices_and_hands_each_its_targe
 
 
 def test_a_pose_is_as_well_fitted_slid_along_a_uniform_corridor_and_not_along_a_cluttered_one():
-    """`Verifier.slid` against scipy: the source's share within one target spacing at the pose moved two spacings
+    """`Verifier.slid` against scipy: the source's share within one target spacing at the pose moved four spacings
     along the source's main axis, over its own. Two walls 20 m long along x, the target's points on a 0.1 m grid,
     the source's drawn at random on them: the axis is x and the slid pose seats as many points (a corridor alike
     along its length). With boxes along the walls (each scan's points drawn in them): far fewer."""
