@@ -19,7 +19,7 @@ soak: the node runs in its own process (as with `ros2 run`) with the params file
   rgb as genreg_ros.bag.make_bag writes them, ~272k points, 4.4 MB each); pair k = (target frame k - gap,
   source frame k), gap 1, looped over for the whole duration. A bag folder (genreg-make-bag output): its
   clouds, paired the same way. `synthetic`: the same 300k-point box pair (--points) again and again. `campus`:
-  LiDAR scans 1 m apart along a street of a synthetic campus (--campus-seed: 7, held out, by default; about 100k
+  LiDAR scans 1 m apart along a street of a synthetic campus (--campus-seed: 7, held out, by default; about 136k
   points; --count scans), for a LiDAR params file at 10 Hz (--params-file config/genreg_lidar.yaml --rate 10); the rate goal
   is then the same share of --rate (28 of 30).
   Every message is serialised before the timed loop; each pair goes out with one fresh stamp (wall
@@ -284,7 +284,7 @@ def goal_rate(rate: float) -> float:
 def campus_clouds(seed: int, count: int | None, gap: int) -> CloudSet:
     """Scans of the synthetic campus `seed` (`genreg_core.data.lidar_world`: 0 and 1 train, 7 is held out) 1 m apart along its
     longest street (a drive at 10 m/s seen at 10 Hz), by scripts/bench_lidar_map.py's HDL-64-like drive sensor
-    (about 100k points, x y z, frame `velodyne`, 10 Hz stamps), serialised; pairs (target = scan k - gap, source =
+    (about 136k points, x y z, frame `velodyne`, 10 Hz stamps), serialised; pairs (target = scan k - gap, source =
     scan k) with T_gt from the scans' poses."""
     from bench_lidar_map import TRACK_SENSOR, drive_poses
 
