@@ -101,14 +101,13 @@ from genreg_core.result import (
     as_well_fitted,
     below_rival,
     build_result,
-    spanning,
+    rivalled,
 )
 from genreg_core.score import (
     FITNESS_SPACINGS,
     TIGHT_SPACINGS,
     TargetIndex,
     grid_keys,
-    motion,
     overlap_shares,
     see_through,
 )
@@ -175,15 +174,6 @@ def main_axis(points: np.ndarray) -> np.ndarray:
     xy = points[:, :2] - points[:, :2].mean(axis=0)
     axis = np.linalg.eigh(xy.T @ xy)[1][:, -1]
     return np.array([axis[0], axis[1], 0.0])
-
-
-def rivalled(result: RegistrationResult, rival: RegistrationResult, weight: float, p: float) -> RegistrationResult:
-    """`result` bounded by a distinct `rival` pose of probability `p`: its confidence at most 1 - p
-    (`below_rival`), the rival named among its unconstrained motions ("translation along (x, y, z) to a rival pose
-    d m away") and their offset widening its covariance by `weight` (`spanning`)."""
-    offset = rival.transformation[:3, 3] - result.transformation[:3, 3]
-    slide = f"{motion('translation along', offset)} to a rival pose {np.linalg.norm(offset):.2f} m away"
-    return replace(spanning(result, offset, weight, slide), confidence=below_rival(result.confidence, p))
 
 
 def map_parts(points: np.ndarray, gap: float) -> np.ndarray:

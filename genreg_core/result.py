@@ -17,8 +17,8 @@ verification features, at most 1 - the rival's probability, times the degeneracy
 
 A pose that the geometry leaves free to slide along an axis (a road, a corridor: `MapLocalizer.flat` in map
 tracking, `Registrar.slide_checked` in registration) is named by `as_well_fitted` ("translation along (x, y, z): as
-well fitted d m along it") and its covariance widened along the axis (`spanning`, which also widens it towards a
-distinct rival pose); whether its confidence is held is its caller's rule.
+well fitted d m along it") and its covariance widened along the axis (`spanning`); a pose bounded by a distinct rival
+pose is named and widened towards it by `rivalled`. Whether a named pose's confidence is held is its caller's rule.
 
 Uncalibrated (one behaviour, documented here): a checkpoint without a calibration, or whose calibration
 has no model for the refinement in use, gets the overlap score instead (`score.overlap_score`: the
@@ -201,3 +201,12 @@ def as_well_fitted(result: RegistrationResult, offset: np.ndarray) -> Registrati
     covariance widened by offset offset^T (`spanning`). Its confidence is the caller's to hold."""
     text = f"{motion('translation along', offset)}: {AS_WELL_FITTED} {np.linalg.norm(offset):.2f} m along it"
     return spanning(result, offset, 1.0, text)
+
+
+def rivalled(result: RegistrationResult, rival: RegistrationResult, weight: float, p: float) -> RegistrationResult:
+    """`result` bounded by a distinct `rival` pose of probability `p`: its confidence at most 1 - p
+    (`below_rival`), the rival named among its unconstrained motions ("translation along (x, y, z) to a rival pose
+    d m away") and their offset widening its covariance by `weight` (`spanning`)."""
+    offset = rival.transformation[:3, 3] - result.transformation[:3, 3]
+    slide = f"{motion('translation along', offset)} to a rival pose {np.linalg.norm(offset):.2f} m away"
+    return replace(spanning(result, offset, weight, slide), confidence=below_rival(result.confidence, p))

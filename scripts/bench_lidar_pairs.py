@@ -62,7 +62,8 @@ from bench_lidar_map import WALK_STEP, drive_poses, walk_poses
 from genreg_bench.baselines import BaselineParams, fpfh_ransac_icp, kiss_matcher_p2plane
 from genreg_core.config import data_root
 from genreg_core.data import lidar_world as lw
-from genreg_core.geometry import apply_transform, make_transform
+from genreg_core.data.synthetic_lidar import sensor_pose
+from genreg_core.geometry import apply_transform
 from genreg_core.metrics import transform_errors
 from genreg_core.preprocess import preprocess
 from genreg_core.registration import Registrar
@@ -72,12 +73,6 @@ MAX_RE_DEG, MAX_TE_M, GATE = 2.0, 0.3, 0.5
 PROFILES = ("genreg.yaml", "genreg_lidar.yaml")
 BASELINES = {"fpfh+ransac+icp": fpfh_ransac_icp, "kiss-matcher+p2plane": kiss_matcher_p2plane}
 POSES = 200  # scans along each path
-
-
-def turn(yaw: float) -> np.ndarray:
-    """A turn by `yaw` about the sensor's z axis."""
-    c, s = np.cos(yaw), np.sin(yaw)
-    return make_transform(np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]]), np.zeros(3))
 
 
 def pairs(world: lw.World, kind: str, distances: list[float], n: int, seed: int
@@ -99,7 +94,7 @@ def pairs(world: lw.World, kind: str, distances: list[float], n: int, seed: int
         gap = round(d / step)
         for _ in range(n):
             i = int(rng.integers(0, POSES - gap))
-            K = turn(rng.uniform(-np.pi, np.pi))
+            K = sensor_pose(0.0, 0.0, 0.0, rng.uniform(-np.pi, np.pi))  # a turn about z
             out.append((d, apply_transform(K, scan(i + gap)), scan(i),
                         np.linalg.inv(poses[i]) @ poses[i + gap] @ np.linalg.inv(K)))
     return out
@@ -115,7 +110,7 @@ def car_pairs() -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
     source = np.loadtxt(folder / "car_cloud401.csv")
     poses = np.loadtxt(folder / "carCloudList.csv", delimiter=",", skiprows=1, usecols=range(1, 17))
     T = np.linalg.inv(poses[0].reshape(4, 4)) @ poses[1].reshape(4, 4)  # 401 -> 400
-    return [(apply_transform(K, source), target, T @ np.linalg.inv(K)) for K in (turn(np.radians(a)) for a in range(0, 360, 45))]
+    return [(apply_transform(K, source), target, T @ np.linalg.inv(K)) for K in (sensor_pose(0.0, 0.0, 0.0, np.radians(a)) for a in range(0, 360, 45))]
 
 
 def run(method: str, fn: Any, source: np.ndarray, target: np.ndarray, truth: np.ndarray) -> dict[str, Any]:
