@@ -80,6 +80,16 @@ def moved_along(T: np.ndarray, direction: np.ndarray, distances: Sequence[float]
     return moved
 
 
+def turned_about(T: np.ndarray, axis: np.ndarray, pivot: np.ndarray, angles: Sequence[float]) -> list[np.ndarray]:
+    """T (4x4) turned by each of `angles` (radians) about the line through `pivot` along the unit `axis` (both in
+    its frame's coordinates)."""
+    turned = []
+    for angle in angles:
+        R = Rotation.from_rotvec(angle * np.asarray(axis, dtype=np.float64)).as_matrix()
+        turned.append(make_transform(R, pivot - R @ pivot) @ T)
+    return turned
+
+
 def rigid(T: np.ndarray) -> np.ndarray:
     """A 4x4 transform (float64 copy) with its rotation replaced by the nearest rotation and its last row
     (0, 0, 0, 1)."""

@@ -19,7 +19,9 @@ Stages of `register_many` (`register` is one pair of it):
     8. choose     `Registrar.choose`: the candidate that verifies best replaces the pose so far
     9. result     `Registrar.result` -> `result.build_result`: scores, covariance, unconstrained motions, the
                   confidence; input units; with `slide_fit`, a pose as well fitted slid along the source's main
-                  axis (`Verifier.slid`: a road, a corridor) named and held (`Registrar.slide_checked`)
+                  axis (`Verifier.slid`: a road, a corridor) named and held (`Registrar.slide_checked`); with
+                  `turn_fit`, one as well fitted turned about the source's z axis (`Verifier.turned`) likewise
+                  (`Registrar.turn_checked`)
    10. passes     `Registrar.more_passes`: while unsure, stages 1-9 again on other subsamples; the most probable wins
 Conventions (frames, units, T_target_source): `genreg_core.geometry`. `transformation` is the input's
 target_from_source; internally everything runs in the prepared pair's normalised frame.
@@ -54,7 +56,14 @@ from genreg_core.pdsac import (
 from genreg_core.prepare import PreparedPair, model_frame_config, prepare_pair
 from genreg_core.refine import guard_icp, refine
 from genreg_core.refinement import refinement
-from genreg_core.result import Confidence, RegistrationResult, as_well_fitted, below_rival, build_result
+from genreg_core.result import (
+    Confidence,
+    RegistrationResult,
+    as_well_fitted,
+    as_well_turned,
+    below_rival,
+    build_result,
+)
 from genreg_core.verify import SLIDE_SPACINGS, Verifier
 
 # With an initial guess, another pose replaces it only when its fitness (share of source points overlapping
@@ -374,7 +383,7 @@ class Registrar:
                          self.confidence, cfg.pdsac.mode_separation)
         choice = self.choose(p, est, k, check, cfg, watch)  # 6.-8. candidates, refine, verify, choose
         with watch("result"):
-            result = self.result(p, est, k, check, choice)  # 9. result
+            result = self.result(p, est, k, check, choice, cfg)  # 9. result
         timings = {"prepare": p.seconds, **shared, **watch.seconds}
         result.timings = timings | {"total": sum(timings.values())}
         return result
@@ -427,9 +436,11 @@ class Registrar:
                     choice = Choice(rescue, "fallback", check.agreement(rescue))
         return choice
 
-    def result(self, p: PreparedPair, est: Estimate, k: int, check: Verifier, choice: Choice) -> RegistrationResult:
+    def result(self, p: PreparedPair, est: Estimate, k: int, check: Verifier, choice: Choice, cfg: RegistrationConfig
+               ) -> RegistrationResult:
         """Stage 9: the chosen pose verified (`Verifier.verify`, `Verifier.aligned`) into its result
-        (`result.build_result`), in input units (`timings` are filled in by the caller)."""
+        (`result.build_result`), in input units (`timings` are filled in by the caller), then checked for slides and
+        turns (`slide_checked`, `turn_checked`; `cfg`: the pair's normalised-frame settings)."""
         T_n = choice.transform
         T = p.to_input_units(T_n)
         origin_n = (T[:3, 3] - p.offset) / p.scale  # the pose's position, normalised frame
@@ -443,7 +454,7 @@ class Registrar:
             source_generated=a_gen.astype(np.float32),
             target_generated=apply_transform(np.linalg.inv(p.guess), b_gen).astype(np.float32),
         )
-        return self.slide_checked(result, check, T_n, p.scale)
+        return self.turn_checked(self.slide_checked(result, check, T_n, p.scale), check, T_n, p, cfg)
 
     def slide_checked(self, result: RegistrationResult, check: Verifier, T_n: np.ndarray, scale: float
                       ) -> RegistrationResult:
@@ -459,4 +470,25 @@ class Registrar:
         if share < fit:
             return result
         held = as_well_fitted(result, axis * SLIDE_SPACINGS * check.pair.target_index.spacing * scale)
+        return replace(held, confidence=below_rival(held.confidence, held.confidence))
+
+    def turn_checked(self, result: RegistrationResult, check: Verifier, T_n: np.ndarray, p: PreparedPair,
+                     cfg: RegistrationConfig) -> RegistrationResult:
+        """With `turn_fit`, a confident result (above 0.5) whose source seats as well at a distinct pose turned about
+        its z axis and refined again (`Verifier.turned`: a corridor or a hall alike turned around, where the fit does
+        not tell which way the source faces) named (`result.as_well_turned`) and held at 1 - its confidence; the
+        turned share in its `verification` ("turn_share"). A result held already (a slide) is not checked."""
+        if self.config.turn_fit <= 0 or result.confidence <= 0.5:
+            return result
+        target = getattr(p, refinement(cfg.refine.method).target)
+        T = result.transformation
+        up = T[:3, :3] @ np.array([0.0, 0.0, 1.0])  # the source's z axis (a level sensor's up, REP-103)
+        coarse_src = p.dense_src[:: max(1, len(p.dense_src) // COARSE_POINTS)]
+        coarse = replace(cfg.refine, max_iterations=min(COARSE_ITERATIONS, cfg.refine.max_iterations), fine_fraction=1.0)
+        rival, share = check.turned(T_n, up, (T[:3, 3] - p.offset) / p.scale,
+                                    lambda start: refine(coarse_src, target, start, coarse))
+        result.verification["turn_share"] = share
+        if share < self.config.turn_fit:
+            return result
+        held = as_well_turned(result, p.to_input_units(rival), up)
         return replace(held, confidence=below_rival(held.confidence, held.confidence))

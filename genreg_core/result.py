@@ -18,7 +18,9 @@ verification features, at most 1 - the rival's probability, times the degeneracy
 A pose that the geometry leaves free to slide along an axis (a road, a corridor: `MapLocalizer.flat` in map
 tracking, `Registrar.slide_checked` in registration) is named by `as_well_fitted` ("translation along (x, y, z): as
 well fitted d m along it") and its covariance widened along the axis (`spanning`); a pose bounded by a distinct rival
-pose is named and widened towards it by `rivalled`. Whether a named pose's confidence is held is its caller's rule.
+pose is named and widened towards it by `rivalled`, one whose source seats as well turned about its up axis (a corridor
+alike turned around: `Registrar.turn_checked`) by `as_well_turned`. Whether a named pose's confidence is held is its
+caller's rule.
 
 Uncalibrated (one behaviour, documented here): a checkpoint without a calibration, or whose calibration
 has no model for the refinement in use, gets the overlap score instead (`score.overlap_score`: the
@@ -39,6 +41,7 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 
 from genreg_core.confidence import FEATURES, ConfidenceModel, features
+from genreg_core.geometry import rotation_angle
 from genreg_core.score import (
     COVARIANCE_FLOOR_M,
     COVARIANCE_FLOOR_RAD,
@@ -201,6 +204,21 @@ def as_well_fitted(result: RegistrationResult, offset: np.ndarray) -> Registrati
     covariance widened by offset offset^T (`spanning`). Its confidence is the caller's to hold."""
     text = f"{motion('translation along', offset)}: {AS_WELL_FITTED} {np.linalg.norm(offset):.2f} m along it"
     return spanning(result, offset, 1.0, text)
+
+
+def as_well_turned(result: RegistrationResult, rival: np.ndarray, axis: np.ndarray) -> RegistrationResult:
+    """`result` whose source seats about as well at the distinct `rival` pose (4x4, input units), turned about the unit
+    `axis` (target frame): the turn named among its unconstrained motions ("rotation about (x, y, z): as well fitted
+    turned 180 deg, 0.42 m away") and the covariance widened by the rival's offset (`spanning`) and by the turn's
+    square about the axis. Its confidence is the caller's to hold."""
+    angle = float(np.degrees(rotation_angle(rival[:3, :3] @ result.transformation[:3, :3].T)))
+    offset = rival[:3, 3] - result.transformation[:3, 3]
+    text = (f"{motion('rotation about', axis)}: {AS_WELL_FITTED} turned {angle:.0f} deg, "
+            f"{np.linalg.norm(offset):.2f} m away")
+    widened = spanning(result, offset, 1.0, text)
+    if widened.covariance is not None:
+        widened.covariance[3:, 3:] += np.radians(angle) ** 2 * np.outer(axis, axis)
+    return widened
 
 
 def rivalled(result: RegistrationResult, rival: RegistrationResult, weight: float, p: float) -> RegistrationResult:

@@ -1,6 +1,7 @@
 """The registration API: inputs, units, frames, named errors, determinism."""
 
 import dataclasses
+from functools import partial
 
 import numpy as np
 import pytest
@@ -22,7 +23,7 @@ from genreg_core.geometry import apply_transform, random_transform
 from genreg_core.metrics import transform_errors
 from genreg_core.model import GenRegNet
 from genreg_core.prepare import prepare_pair
-from genreg_core.refine import guard_icp, icp, refine
+from genreg_core.refine import gicp, guard_icp, icp, refine
 from genreg_core.refinement import REFINEMENTS, refinement
 from genreg_core.registration import Registrar
 
@@ -445,3 +446,46 @@ def test_a_pose_is_as_well_fitted_slid_along_a_uniform_corridor_and_not_along_a_
         within = [np.mean(tree.query(p.dense_src + s * SLIDE_SPACINGS * spacing * axis)[0] < spacing) for s in (0, 1, -1)]
         assert share == pytest.approx(max(within[1:]) / within[0], abs=1e-6)
         assert share > 0.95 if uniform else share < 0.8, share
+
+
+def test_a_pose_is_as_well_fitted_turned_in_a_symmetric_corridor_and_not_in_a_lopsided_one():
+    """`Verifier.turned` against scipy: the best share of the source within one target spacing at the pose turned 90,
+    180 or 270 deg about the up axis through the sensor, over its own (`align` leaves a start as it is, so the turned
+    poses are exact). A corridor 8 m long, 3 m wide, its walls and floor on a 0.1 m grid about a sensor on its centre
+    line: turned 180 deg it seats as many points (a corridor alike turned around), and that turn is the rival; from a
+    sensor 0.3 m off the centre line too, once GICP aligns the turns again. With boxes along one wall only, far fewer.
+    A turn that aligns back onto the pose is no rival."""
+    from scipy.spatial import cKDTree
+    from scipy.spatial.transform import Rotation
+
+    from genreg_core.verify import TURNS_DEG, Verifier
+
+    rng = np.random.default_rng(5)
+    x, z = np.meshgrid(np.arange(-4.0, 4.0, 0.1), np.arange(0.0, 2.5, 0.1))
+    walls = [np.c_[x.ravel(), np.full(x.size, y), z.ravel()] for y in (-1.5, 1.5)]
+    fx, fy = np.meshgrid(np.arange(-4.0, 4.0, 0.1), np.arange(-1.5, 1.5, 0.1))
+    grid = np.concatenate([*walls, np.c_[fx.ravel(), fy.ravel(), np.zeros(fx.size)]])
+    drawn = grid[rng.choice(len(grid), 6000, replace=False)] + rng.normal(0.0, 0.005, (6000, 3))
+    boxes = np.c_[rng.uniform(-3.5, 3.5, 12), np.full(12, 1.2), rng.uniform(0.3, 2.0, 12)]
+    clutter = np.concatenate([c + rng.uniform(-0.15, 0.15, (200, 3)) for c in boxes])
+    sensor, up = np.array([0.0, 0.0, 1.0]), np.array([0.0, 0.0, 1.0])
+    for target, source, symmetric in ((grid, drawn, True), (np.r_[grid, clutter], np.r_[drawn, clutter], False)):
+        p = prepare_pair(source, target, None, num_points=64, refine_points=20000, min_points=16, seed=0)
+        check = Verifier(p, torch.zeros(64, 3), torch.zeros(64, 3), 0.01, None)
+        rival, share = check.turned(np.eye(4), up, (sensor - p.offset) / p.scale, lambda start: start)
+        tree, spacing = cKDTree(p.dense_tgt), p.target_index.spacing
+        centre = (sensor - p.offset) / p.scale
+        within = []
+        for angle in (0.0, *TURNS_DEG):
+            R = Rotation.from_euler("z", angle, degrees=True).as_matrix()
+            within.append(np.mean(tree.query((p.dense_src - centre) @ R.T + centre)[0] < spacing))
+        assert share == pytest.approx(max(within[1:]) / within[0], abs=1e-6)
+        assert share > 0.95 if symmetric else share < 0.8, share
+        if symmetric:
+            np.testing.assert_allclose(rival[:3, :3], Rotation.from_euler("z", 180, degrees=True).as_matrix(), atol=1e-9)
+
+        off_centre = (np.array([0.2, 0.3, 1.0]) - p.offset) / p.scale
+        aligned = partial(gicp, p.dense_src, p.dense_tgt, max_distance=5 * spacing, max_iterations=30)
+        assert (check.turned(np.eye(4), up, off_centre, aligned)[1] > 0.95) == symmetric
+        # aligned back onto the pose, every turn is the pose itself: no rival
+        assert check.turned(np.eye(4), up, centre, lambda start: np.eye(4)) == (pytest.approx(np.eye(4)), 0.0)
