@@ -212,7 +212,7 @@ def main() -> int:
                     if name in BASELINES and done[d] > ARGS.baseline_pairs:
                         continue
                     records.append({"seed": seed, "kind": kind, "distance": d, **run(name, fn, source, target, truth)})
-            table(records, kind, distances, list(methods),
+            table([r for r in records if r["seed"] == seed], kind, distances, list(methods),
                   f"campus {seed}, {'street' if kind == 'road' else 'corridor'}")
     if len(ARGS.seed) > 1:
         for kind, distances in paths:
