@@ -98,18 +98,18 @@ class Verifier:
         """(the best turned rival of T, its share of the source within one target spacing over T's own `tight`):
         T turned by each of `TURNS_DEG` about the unit `up` axis (the source's z in the target frame) through the
         `sensor` (the source frame's origin moved by T), each aligned again by `align` (refinement from a start)
-        where it seats `TURN_START_SHARE` of T's own share as it is;
-        only rivals more than `separation` deg from T count (a turn that aligns back onto T is no rival). About 1 or
-        more where the target looks alike turned around (a corridor, a square hall), so the fit does not tell which
-        way the source faces; (T, 0) when none is distinct or T seats no point."""
+        where it seats `TURN_START_SHARE` of T's own share as it is; only rivals more than `separation` deg from T
+        count (a turn that aligns back onto T is no rival). About 1 or more where the target looks alike turned
+        around (a corridor, a square hall), so the fit does not tell which way the source faces; (T, 0) when none
+        is distinct or T seats no point."""
         own, best, share = self.tight(T), T, 0.0
         for start in turned_about(T, up, sensor, np.radians(TURNS_DEG)) if own > 0 else []:
             if self.tight(start) < TURN_START_SHARE * own:
                 continue
             rival = align(start)
-            if np.degrees(rotation_angle(rival[:3, :3] @ T[:3, :3].T)) > self.separation and \
-                    self.tight(rival) / own > share:
-                best, share = rival, self.tight(rival) / own
+            seated = self.tight(rival) / own
+            if seated > share and np.degrees(rotation_angle(rival[:3, :3] @ T[:3, :3].T)) > self.separation:
+                best, share = rival, seated
         return best, share
 
     def shares(self, T: np.ndarray) -> np.ndarray:
