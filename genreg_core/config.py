@@ -291,10 +291,10 @@ class RegistrationConfig:
                                "target spacing) moved four target spacings along the aligned source's main axis, either "
                                "way, is named as well fitted along it (a road or a corridor alike along its length) and "
                                "held at 1 - its confidence, at most 0.5; 0: off.", low=0.0, high=1.0)
-    turn_fit: float = setting(0.0, "A confident pose (above 0.5) whose source seats at least this share of its own tight "
-                              "fitness at a distinct pose turned 90, 180 or 270 deg about the sensor's z axis and "
-                              "aligned again is named as well fitted turned (a corridor alike turned around) and held "
-                              "at 1 - its confidence; 0: off.",
+    turn_fit: float = setting(0.0, "A confident pose (above 0.5, no initial guess) whose source seats at least this share "
+                              "of its own tight fitness at a distinct pose turned 90, 180 or 270 deg about the sensor's "
+                              "z axis and aligned again is named as well fitted turned (a corridor alike turned around) "
+                              "and held at 1 - its confidence; 0: off.",
                               low=0.0, high=1.0)
 
     def __post_init__(self) -> None:

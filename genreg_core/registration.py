@@ -478,8 +478,9 @@ class Registrar:
         its z axis and refined again (`Verifier.turned`: a corridor or a hall alike turned around, where the fit does
         not tell which way the source faces) named (`result.as_well_turned`) and held at 1 - its confidence; the
         turned share in its `verification` ("turn_share"). Only a result above 0.5 is checked (holding changes no
-        other): one held already (a slide) is not. The turns are aligned coarsely, as PDSAC's other modes are."""
-        if self.config.turn_fit <= 0 or result.confidence <= 0.5:
+        other): one held already (a slide) is not, nor one registered from an initial guess (the guess says which way
+        the source faces). The turns are aligned coarsely, as PDSAC's other modes are."""
+        if self.config.turn_fit <= 0 or result.confidence <= 0.5 or p.init is not None:
             return result
         target = getattr(p, refinement(cfg.refine.method).target)
         T = result.transformation

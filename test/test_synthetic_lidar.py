@@ -231,7 +231,8 @@ def test_the_lidar_profile_holds_a_pose_in_a_hall_alike_turned_around_naming_the
     """A hall 12 x 4 m with four pillars, alike turned 180 deg about the sensor's z axis, the source turned by any yaw.
     Without `turn_fit` the profile lays the source right or turned around, confident either way (a coin flip at 0.97 or
     more); with config/genreg_lidar.yaml every pose is held at 1 - its confidence with the turn named about the up axis
-    and the covariance of the rotation about it widened by the turn's square."""
+    and the covariance of the rotation about it widened by the turn's square. From a guess (which says which way the
+    source faces) the pose is right and stays confident."""
     registrar, pre = lidar_profile
     unchecked = Registrar(registrar.model, replace(registrar.config, turn_fit=0.0), registrar.calibration)
     turned_confidently = 0
@@ -247,6 +248,8 @@ def test_the_lidar_profile_holds_a_pose_in_a_hall_alike_turned_around_naming_the
         named = [u for u in result.unconstrained if "as well fitted turned 180 deg" in u]
         assert result.confidence < 0.5 and len(named) == 1, (result.confidence, result.unconstrained)
         assert abs(named_axis(named[0])[2]) > 0.99 and result.covariance[5, 5] > np.radians(178.0) ** 2
+        guessed = registrar.register(source, target, np.linalg.inv(K))  # a guess says which way the source faces
+        assert guessed.confidence > 0.9 and transform_errors(guessed.transformation, np.linalg.inv(K))[0] < 2.0
     assert turned_confidently >= 1  # the check is what holds them
 
 
