@@ -341,7 +341,8 @@ class MapLocalizer:
         self._key = content_key(self.map) if cache_dir is not None else ""
         self._places: dict[float, list[np.ndarray]] = {}  # scan radius -> the places' map rows
         self._parts: dict[float, list[np.ndarray]] = {}  # scan radius -> the parts' points
-        # candidates are screened without refinement (ranking only), then verified with the full profile
+        # candidates are screened without refinement and with one PDSAC mode (ranking only: no probability is asked
+        # before the result, `modes_below` 0), then verified with the full profile
         cfg = self.registrar.config
         # the map's registrations run without the refinement guard: its ICP from the scan's and the map's
         # centroids put together is no pose in a map (on redkitchen training maps it never placed a scan that
@@ -349,7 +350,7 @@ class MapLocalizer:
         self._mapper = Registrar(self.registrar.model, replace(cfg, refine=replace(cfg.refine, guard_below=0.0)),
                                  self.registrar.calibration)
         self._screen_config = replace(cfg, refine=replace(cfg.refine, method="none", num_points=config.screen_points),
-                                      pdsac=replace(cfg.pdsac, modes=1))
+                                      pdsac=replace(cfg.pdsac, modes=1, modes_below=0.0))
         self._screen_model = resized(self.registrar.model, config.screen_model_points) or self.registrar.model
         self._screener = Registrar(self._screen_model, self._screen_config, self.registrar.calibration)
 

@@ -392,8 +392,8 @@ class Registrar:
                watch: Stopwatch) -> Choice:
         """Stages 6 (candidates, refined) to 8 (choose), in the pair's normalised frame `cfg`, each stage's
         seconds in `watch`: GenReg's estimate, refined ('refine'); its calibrated probability ('verify': with
-        a calibration and no guess, a guess asks for a local answer); PDSAC's other modes only when that is
-        below `pdsac.modes_below` ('modes': a confident estimate costs nothing more); the initial guess, kept
+        a calibration, no guess and `pdsac.modes_below` above 0; a guess asks for a local answer); PDSAC's other modes
+        only when that is below `pdsac.modes_below` ('modes': a confident estimate costs nothing more); the initial guess, kept
         or refined ('guess': another pose replaces it only with a `GUESS_MARGIN` more fitness); without a
         guess, the guard's wide refinement from identity when the overlap score is below `refine.guard_below`
         ('guard'); the opt-in classical fallback below `fallback.below` ('fallback'). The guard and the
@@ -404,7 +404,7 @@ class Registrar:
         with watch("refine"):
             T = refine(p.dense_src, target, winner, cfg.refine)
         choice = Choice(T, "genreg", float(est.inliers[k].float().mean()))
-        if check.confidence.calibrated and p.init is None:
+        if check.confidence.calibrated and p.init is None and cfg.pdsac.modes_below > 0:
             with watch("verify"):
                 score = check.probability(T)
             if score < cfg.pdsac.modes_below:

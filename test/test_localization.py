@@ -217,6 +217,22 @@ def test_places_are_screened_by_the_shipped_weights_at_256_points(kitchen):
     assert resized(loc.registrar.model, loc.registrar.num_points) is loc.registrar.model
 
 
+def test_screening_skips_the_probability_and_modes_that_one_mode_leaves_unused(kitchen):
+    """Screening registers every place with one PDSAC mode and `modes_below` 0: the same poses and confidences as
+    with the profile's `modes_below` (one mode has no other to verify), without their cost."""
+    seq, loc = kitchen
+    assert loc._screen_config.pdsac.modes == 1 and loc._screen_config.pdsac.modes_below == 0.0
+    pdsac = dataclasses.replace(loc._screen_config.pdsac, modes_below=0.9)
+    asked = dataclasses.replace(loc._screen_config, pdsac=pdsac)
+    reference = Registrar(loc._screen_model, asked, loc.registrar.calibration)
+    scan = voxel_downsample(seq.points(855, stride=STRIDE).astype(np.float64), loc.voxel_size)
+    places = [loc.map[rows] for rows in loc.places(loc.scan_geometry(scan)[1])[:6]]
+    theirs_all = reference.register_many([(scan, place) for place in places])
+    for ours, theirs in zip(loc.screen(scan, places), theirs_all, strict=True):
+        np.testing.assert_array_equal(ours.transformation, theirs.transformation)
+        assert ours.confidence == theirs.confidence and "modes" not in ours.timings and "verify" not in ours.timings
+
+
 def test_bad_input_raises_the_registrars_named_errors(kitchen):
     seq, loc = kitchen
     scan = seq.points(855, stride=16)
