@@ -29,9 +29,10 @@ REMEMBERED_POSES = 8  # a Verifier keeps the squared distances of this many pose
 SLIDE_SPACINGS = 4  # `Verifier.slid` moves a pose this many target spacings along the source's main axis (MODEL_CARD
 # "LiDAR pairs metres apart": 2 held a third of the training campuses' right consecutive drive scans)
 TURNS_DEG = (90.0, 180.0, 270.0)  # `Verifier.turned` turns a pose by these angles about the source's up axis
-TURN_START_SHARE = 0.2  # ... and aligns a turn again only where it seats this share of the pose's own tight fitness
-# as it is (MODEL_CARD "LiDAR pairs: turned rivals": on the training campuses every turn that aligned to 0.85 or more
-# seated 0.23 or more before; most of a street's turns less than 0.2)
+TURN_START_SHARE = 0.2  # ... and aligns a turn again only where, as it is, it seats this share of the points the pose
+# seats that not every turn seats (the ground about the sensor seats whatever the turn; MODEL_CARD "LiDAR pairs: turned
+# rivals": on the training campuses every turn that aligned to 0.85 or more seated 0.23 or more of all the pose's
+# points; counting only those a turn changes, consecutive drive scans align a third fewer turns, the same poses held)
 
 
 @dataclass
@@ -98,13 +99,21 @@ class Verifier:
         """(the best turned rival of T, its share of the source within one target spacing over T's own `tight`):
         T turned by each of `TURNS_DEG` about the unit `up` axis (the source's z in the target frame) through the
         `sensor` (the source frame's origin moved by T), each aligned again by `align` (refinement from a start)
-        where it seats `TURN_START_SHARE` of T's own share as it is; only rivals more than `separation` deg from T
+        where, as it is, it seats `TURN_START_SHARE` of the source points T seats within one spacing that not every
+        turn seats (the ground about the sensor seats whatever the turn); only rivals more than `separation` deg from T
         count (a turn that aligns back onto T is no rival). About 1 or more where the target looks alike turned
         around (a corridor, a square hall), so the fit does not tell which way the source faces; (T, 0) when none
         is distinct or T seats no point."""
         own, best, share = self.tight(T), T, 0.0
-        for start in turned_about(T, up, sensor, np.radians(TURNS_DEG)) if own > 0 else []:
-            if self.tight(start) < TURN_START_SHARE * own:
+        if own <= 0:
+            return best, share
+        starts = turned_about(T, up, sensor, np.radians(TURNS_DEG))
+        limit = (TIGHT_SPACINGS * self.pair.target_index.spacing) ** 2
+        seated = [self.squared(S) < limit for S in (T, *starts)]
+        varying = ~np.logical_and.reduce(seated)  # what every turn seats alike (the ground about the sensor) tells none
+        own_varying = np.count_nonzero(seated[0] & varying)
+        for start, at_start in zip(starts, seated[1:], strict=True):
+            if np.count_nonzero(at_start & varying) < TURN_START_SHARE * own_varying:
                 continue
             rival = align(start)
             seated = self.tight(rival) / own
