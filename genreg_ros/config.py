@@ -384,7 +384,7 @@ SCENE_OVERRIDES: dict[str, Any] = {"model.checkpoint": SCENE_MODEL, **registrati
 # held); corridors are alike along their length: of pairs 0.5-8 m apart 47 of 52 right kept, 15 of 23 wrong held); a
 # confident pose that seats 0.9 as many points at a distinct pose turned 90, 180 or 270 deg about the sensor's z axis
 # held (turn_fit; a corridor alike turned around: of 200 training corridor pairs 0.5-8 m apart 99 of 103 right kept, 8
-# of 15 confidently wrong held, no street pose held; 5-15 ms more a confident pose); no latency budget (a 10 Hz scan
+# of 15 confidently wrong held, no street pose held; 5-10 ms more a confident pose); no latency budget (a 10 Hz scan
 # has 100 ms; light registrations, 1,500 points, accepted 65 of 96 right training street pairs against 76 in full,
 # with the same 3 confidently wrong; two workers keep up with full ones at 10 Hz)
 LIDAR_OVERRIDES: dict[str, Any] = {**SCENE_OVERRIDES, "preprocess.voxel_size": 0.5, "registration.slide_fit": 0.85,
