@@ -191,6 +191,15 @@ def distinct_poses(T_a: np.ndarray, T_b: np.ndarray, separation_rad: float, tran
     return bool(cos < np.cos(separation_rad) or np.linalg.norm(T_a[:3, 3] - T_b[:3, 3]) > translation)
 
 
+def coarsely(dense_src: np.ndarray, target: object, refine_cfg: RefineConfig) -> Callable[[np.ndarray], np.ndarray]:
+    """The refinement of a start on `COARSE_POINTS` of the source's points for `COARSE_ITERATIONS` iterations, no
+    tight stage: how PDSAC's other modes (`verified_mode`) and turned poses (`Registrar.turn_checked`) are first
+    aligned."""
+    coarse_src = dense_src[:: max(1, len(dense_src) // COARSE_POINTS)]
+    coarse_cfg = replace(refine_cfg, max_iterations=min(COARSE_ITERATIONS, refine_cfg.max_iterations), fine_fraction=1.0)
+    return lambda start: refine(coarse_src, target, start, coarse_cfg)
+
+
 def verified_mode(check: Verifier, target: object, T_best: np.ndarray, best_score: float, start: np.ndarray,
                   find_modes: Callable[[], np.ndarray], refine_cfg: RefineConfig) -> tuple[np.ndarray, float]:
     """GenReg's refined estimate `T_best` (calibrated probability `best_score`) or another PDSAC mode
@@ -201,10 +210,8 @@ def verified_mode(check: Verifier, target: object, T_best: np.ndarray, best_scor
     probability: the best of the other distinct poses verified."""
     modes = find_modes()
     dense_src = check.pair.dense_src
-    coarse_src = dense_src[:: max(1, len(dense_src) // COARSE_POINTS)]
-    coarse_cfg = replace(refine_cfg, max_iterations=min(COARSE_ITERATIONS, refine_cfg.max_iterations), fine_fraction=1.0)
     distinct = [M for k, M in enumerate(modes) if not any(np.array_equal(M, m) for m in [start, *modes[:k]])]
-    coarse = [refine(coarse_src, target, M, coarse_cfg) for M in distinct]
+    coarse = list(map(coarsely(dense_src, target, refine_cfg), distinct))
     scores = [check.probability(T) for T in coarse]
     chosen = T_best
     if scores and max(scores) > best_score:
@@ -392,8 +399,9 @@ class Registrar:
                watch: Stopwatch) -> Choice:
         """Stages 6 (candidates, refined) to 8 (choose), in the pair's normalised frame `cfg`, each stage's
         seconds in `watch`: GenReg's estimate, refined ('refine'); its calibrated probability ('verify': with
-        a calibration, no guess and `pdsac.modes_below` above 0; a guess asks for a local answer); PDSAC's other modes
-        only when that is below `pdsac.modes_below` ('modes': a confident estimate costs nothing more); the initial guess, kept
+        a calibration, no guess and `pdsac.modes_below` above 0; a guess asks for a local answer); PDSAC's other
+        modes only when that is below `pdsac.modes_below` ('modes': a confident estimate costs nothing more); the
+        initial guess, kept
         or refined ('guess': another pose replaces it only with a `GUESS_MARGIN` more fitness); without a
         guess, the guard's wide refinement from identity when the overlap score is below `refine.guard_below`
         ('guard'); the opt-in classical fallback below `fallback.below` ('fallback'). The guard and the
@@ -485,10 +493,7 @@ class Registrar:
         target = getattr(p, refinement(cfg.refine.method).target)
         T = result.transformation
         up = T[:3, :3] @ np.array([0.0, 0.0, 1.0])  # the source's z axis (a level sensor's up, REP-103)
-        coarse_src = p.dense_src[:: max(1, len(p.dense_src) // COARSE_POINTS)]
-        coarse = replace(cfg.refine, max_iterations=min(COARSE_ITERATIONS, cfg.refine.max_iterations), fine_fraction=1.0)
-        rival, share = check.turned(T_n, up, (T[:3, 3] - p.offset) / p.scale,
-                                    lambda start: refine(coarse_src, target, start, coarse))
+        rival, share = check.turned(T_n, up, (T[:3, 3] - p.offset) / p.scale, coarsely(p.dense_src, target, cfg.refine))
         result.verification["turn_share"] = share
         if share < self.config.turn_fit:
             return result

@@ -72,9 +72,13 @@ class Verifier:
         inliers = squared[squared < self.distance ** 2]
         return len(inliers) / len(squared), float(np.sqrt(inliers.mean())) if len(inliers) else 0.0
 
+    def seats(self, T: np.ndarray) -> np.ndarray:
+        """Which refinement-size source points T puts within one target spacing (bool)."""
+        return self.squared(T) < (TIGHT_SPACINGS * self.pair.target_index.spacing) ** 2
+
     def tight(self, T: np.ndarray) -> float:
         """The share of the source within one target spacing."""
-        return float(np.mean(self.squared(T) < (TIGHT_SPACINGS * self.pair.target_index.spacing) ** 2))
+        return float(np.mean(self.seats(T)))
 
     def closer(self, T_a: np.ndarray, T_b: np.ndarray, margin: float = 0.0) -> bool:
         """Whether T_a puts a larger share (by more than `margin`) of the source within one spacing (not
@@ -108,17 +112,16 @@ class Verifier:
         if own <= 0:
             return best, share
         starts = turned_about(T, up, sensor, np.radians(TURNS_DEG))
-        limit = (TIGHT_SPACINGS * self.pair.target_index.spacing) ** 2
-        seated = [self.squared(S) < limit for S in (T, *starts)]
+        seated = [self.seats(S) for S in (T, *starts)]
         varying = ~np.logical_and.reduce(seated)  # what every turn seats alike (the ground about the sensor) tells none
         own_varying = np.count_nonzero(seated[0] & varying)
         for start, at_start in zip(starts, seated[1:], strict=True):
             if np.count_nonzero(at_start & varying) < TURN_START_SHARE * own_varying:
                 continue
             rival = align(start)
-            seated = self.tight(rival) / own
-            if seated > share and np.degrees(rotation_angle(rival[:3, :3] @ T[:3, :3].T)) > self.separation:
-                best, share = rival, seated
+            fit = self.tight(rival) / own
+            if fit > share and np.degrees(rotation_angle(rival[:3, :3] @ T[:3, :3].T)) > self.separation:
+                best, share = rival, fit
         return best, share
 
     def shares(self, T: np.ndarray) -> np.ndarray:
