@@ -28,6 +28,9 @@ from genreg_core.score import FITNESS_SPACINGS, TIGHT_SPACINGS, overlap_score
 REMEMBERED_POSES = 8  # a Verifier keeps the squared distances of this many poses (a pair's candidates)
 SLIDE_SPACINGS = 4  # `Verifier.slid` moves a pose this many target spacings along the source's main axis (MODEL_CARD
 # "LiDAR pairs metres apart": 2 held a third of the training campuses' right consecutive drive scans)
+SLIDE_SEAT_SPACINGS = 2.0  # ... and counts the source points within this many target spacings, at the pose and slid
+# (MODEL_CARD "LiDAR pairs: slides counted within two spacings": within one, a corridor's scans can fit best with the
+# two sensors put together, where their rings coincide, and a pose slid to the right one seats a fifth fewer)
 TURNS_DEG = (90.0, 180.0, 270.0)  # `Verifier.turned` turns a pose by these angles about the source's up axis
 TURN_START_SHARE = 0.2  # ... and aligns a turn again only where, as it is, it seats this share of the points the pose
 # seats that not every turn seats (the ground about the sensor seats whatever the turn; MODEL_CARD "LiDAR pairs: turned
@@ -72,13 +75,17 @@ class Verifier:
         inliers = squared[squared < self.distance ** 2]
         return len(inliers) / len(squared), float(np.sqrt(inliers.mean())) if len(inliers) else 0.0
 
-    def seats(self, T: np.ndarray) -> np.ndarray:
-        """Which refinement-size source points T puts within one target spacing (bool)."""
-        return self.squared(T) < (TIGHT_SPACINGS * self.pair.target_index.spacing) ** 2
+    def seats(self, T: np.ndarray, spacings: float = TIGHT_SPACINGS) -> np.ndarray:
+        """Which refinement-size source points T puts within this many target spacings (default one; bool)."""
+        return self.squared(T) < (spacings * self.pair.target_index.spacing) ** 2
+
+    def within(self, T: np.ndarray, spacings: float) -> float:
+        """The share of the source within this many target spacings."""
+        return float(np.mean(self.seats(T, spacings)))
 
     def tight(self, T: np.ndarray) -> float:
         """The share of the source within one target spacing."""
-        return float(np.mean(self.seats(T)))
+        return self.within(T, TIGHT_SPACINGS)
 
     def closer(self, T_a: np.ndarray, T_b: np.ndarray, margin: float = 0.0) -> bool:
         """Whether T_a puts a larger share (by more than `margin`) of the source within one spacing (not
@@ -88,14 +95,14 @@ class Verifier:
 
     def slid(self, T: np.ndarray) -> tuple[np.ndarray, float]:
         """(the main axis of the source moved by T: the unit principal axis of its points, a road's or a corridor's
-        direction; the larger share of the source within one target spacing at T moved `SLIDE_SPACINGS` spacings
-        along it either way, over T's own `tight`): about 1 or more where the target is alike along the axis, so
-        the fit does not tell where along it the source lies; 0 when T seats no point."""
+        direction; the larger share of the source within `SLIDE_SEAT_SPACINGS` target spacings at T moved
+        `SLIDE_SPACINGS` spacings along it either way, over T's own): about 1 or more where the target is alike along
+        the axis, so the fit does not tell where along it the source lies; 0 when T seats no point."""
         moved = apply_transform(T, self.pair.dense_src.astype(np.float64))
         centred = moved - moved.mean(axis=0)
         axis = np.linalg.eigh(centred.T @ centred)[1][:, -1]
-        own, shift = self.tight(T), SLIDE_SPACINGS * self.pair.target_index.spacing
-        slid = max(self.tight(S) for S in moved_along(T, axis, (shift, -shift)))
+        own, shift = self.within(T, SLIDE_SEAT_SPACINGS), SLIDE_SPACINGS * self.pair.target_index.spacing
+        slid = max(self.within(S, SLIDE_SEAT_SPACINGS) for S in moved_along(T, axis, (shift, -shift)))
         return axis, slid / own if own > 0 else 0.0
 
     def turned(self, T: np.ndarray, up: np.ndarray, sensor: np.ndarray, align: Callable[[np.ndarray], np.ndarray]

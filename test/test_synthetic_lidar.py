@@ -12,6 +12,7 @@ from dataclasses import replace
 
 import numpy as np
 import pytest
+import torch
 
 from genreg_core.config import SCENE_MODEL, SCENE_REGISTRATION
 from genreg_core.data.synthetic_lidar import (
@@ -251,6 +252,52 @@ def test_the_lidar_profile_holds_a_pose_in_a_hall_alike_turned_around_naming_the
         guessed = registrar.register(source, target, np.linalg.inv(K))  # a guess says which way the source faces
         assert guessed.confidence > 0.9 and transform_errors(guessed.transformation, np.linalg.inv(K))[0] < 2.0
     assert turned_confidently >= 1  # the check is what holds them
+
+
+def test_a_featureless_corridor_seats_the_sensors_put_together_as_well_slid_within_two_spacings(
+        lidar_profile: tuple[Registrar, PreprocessConfig]) -> None:
+    """A corridor 3 m wide and 2.6 m high without a feature along it (floor, ceiling, walls: alike along its length),
+    scanned 4 m apart, the source turned by any yaw. The profile puts the two sensors together (4 m off), where the
+    scans' rings coincide: within one target spacing the pose slid four spacings along the corridor seats a fifth
+    fewer points (`Verifier.slid` as first written: the slide went unseen), within two (`SLIDE_SEAT_SPACINGS`) about
+    as many, against scipy. The result names the corridor's direction as well fitted along it and is not confident."""
+    from scipy.spatial import cKDTree
+
+    from genreg_core.prepare import prepare_pair
+    from genreg_core.verify import SLIDE_SEAT_SPACINGS, SLIDE_SPACINGS, Verifier
+
+    registrar, pre = lidar_profile
+    corridor = Scene("corridor")
+    for point, normal in (((0, 0, 0), (0, 0, 1)), ((0, 0, 2.6), (0, 0, -1)), ((0, -1.5, 0), (0, 1, 0)),
+                          ((0, 1.5, 0), (0, -1, 0))):
+        corridor.add_plane(point, normal, 0.6)
+    rng = np.random.default_rng(0)
+    pose_target, pose_source = (sensor_pose(x, rng.uniform(-0.5, 0.5), 1.0, rng.uniform(-0.1, 0.1)) for x in (0.0, 4.0))
+    K = sensor_pose(0.0, 0.0, 0.0, rng.uniform(-np.pi, np.pi))
+    target = preprocess(lidar_scan(corridor, pose_target, rng, default_sensor("room")).points.astype(np.float64), pre)
+    source = preprocess(apply_transform(K, lidar_scan(corridor, pose_source, rng, default_sensor("room")).points
+                                        .astype(np.float64)), pre)
+    result = registrar.register(source, target)
+    truth = np.linalg.inv(pose_target) @ pose_source @ np.linalg.inv(K)
+    along = np.linalg.inv(pose_target)[:3, :3] @ [1.0, 0.0, 0.0]  # the corridor's length, target frame
+    assert truth[:3, 3] @ along > 3.9 and abs(result.transformation[:3, 3] @ along) < 0.5  # the sensors put together
+    cfg = registrar.config
+    p = prepare_pair(source, target, num_points=registrar.num_points, refine_points=cfg.refine.num_points, seed=cfg.seed)
+    check = Verifier(p, torch.zeros(1, 3), torch.zeros(1, 3), 0.01, None)
+    T_n = p.to_normalized(result.transformation)
+    axis, share = check.slid(T_n)
+    assert abs(axis @ along) > 0.99
+    moved, tree, spacing = apply_transform(T_n, p.dense_src), cKDTree(p.dense_tgt), p.target_index.spacing
+    shift = SLIDE_SPACINGS * spacing * axis
+
+    def ratio(spacings: float) -> float:
+        within = [np.mean(tree.query(moved + s * shift)[0] < spacings * spacing) for s in (0, 1, -1)]
+        return max(within[1:]) / within[0]
+
+    assert share == pytest.approx(ratio(SLIDE_SEAT_SPACINGS), abs=1e-6)
+    assert ratio(1.0) < cfg.slide_fit <= share, (ratio(1.0), share)
+    named = [u for u in result.unconstrained if "as well fitted" in u and u.startswith("translation")]
+    assert result.confidence < 0.5 and len(named) == 1 and abs(named_axis(named[0]) @ axis) > 0.99, result.unconstrained
 
 
 def hall(rng: np.random.Generator, n: int = 3000) -> np.ndarray:
