@@ -287,10 +287,10 @@ class RegistrationConfig:
     device: str = setting("cpu", "Torch device: cpu, cuda or cuda:<index>.", start_up=True)
     estimate_threads: int = setting(1, "Torch intra-op threads while the network and PDSAC run; 0: torch's own "
                                     "setting. One is faster on small clouds (MODEL_CARD.md).", low=0, high=256)
-    slide_fit: float = setting(0.0, "A pose whose source seats at least this share of its own tight fitness (within one "
-                               "target spacing) moved four target spacings along the aligned source's main axis, either "
-                               "way, is named as well fitted along it (a road or a corridor alike along its length) and "
-                               "held at 1 - its confidence, at most 0.5; 0: off.", low=0.0, high=1.0)
+    slide_fit: float = setting(0.0, "A pose whose source seats at least this share of its own points within two target "
+                               "spacings moved four target spacings along the aligned source's main axis, either way, is "
+                               "named as well fitted along it (a road or a corridor alike along its length) and held at "
+                               "1 - its confidence, at most 0.5; 0: off.", low=0.0, high=1.0)
     turn_fit: float = setting(0.0, "A confident pose (above 0.5, no initial guess) whose source seats at least this share "
                               "of its own tight fitness at a distinct pose turned 90, 180 or 270 deg about the sensor's "
                               "z axis and aligned again is named as well fitted turned (a corridor alike turned around) "
