@@ -30,7 +30,7 @@ SLIDE_SPACINGS = 4  # `Verifier.slid` moves a pose this many target spacings alo
 # "LiDAR pairs metres apart": 2 held a third of the training campuses' right consecutive drive scans)
 SLIDE_SEAT_SPACINGS = 2.0  # ... and counts the source points within this many target spacings, at the pose and slid
 # (MODEL_CARD "LiDAR pairs: slides counted within two spacings": within one, a corridor's scans can fit best with the
-# two sensors put together, where their rings coincide, and a pose slid to the right one seats a fifth fewer)
+# two sensors put together, where their rings coincide, the pose slid towards the right one seating 15-60 % fewer)
 TURNS_DEG = (90.0, 180.0, 270.0)  # `Verifier.turned` turns a pose by these angles about the source's up axis
 TURN_START_SHARE = 0.2  # ... and aligns a turn again only where, as it is, it seats this share of the points the pose
 # seats that not every turn seats (the ground about the sensor seats whatever the turn; MODEL_CARD "LiDAR pairs: turned
