@@ -296,6 +296,12 @@ class RegistrationConfig:
                               "z axis and aligned again is named as well fitted turned (a corridor alike turned around) "
                               "and held at 1 - its confidence; 0: off.",
                               low=0.0, high=1.0)
+    see_through: float = setting(0.0, "A confident pose (above 0.5) whose source, placed by it, would have seen through at "
+                                 "least this share of the target's structure (its points 1 m or more above the source's "
+                                 "ground, in front of the source's returns along their rays) is held at 1 - its "
+                                 "confidence: a corridor's pose turned or slid puts walls where the source saw through "
+                                 "doorways. The source in its sensor frame, z up (a level LiDAR), in metres; 0: off.",
+                                 low=0.0, high=1.0)
 
     def __post_init__(self) -> None:
         check_ranges(self)

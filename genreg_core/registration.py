@@ -447,8 +447,9 @@ class Registrar:
     def result(self, p: PreparedPair, est: Estimate, k: int, check: Verifier, choice: Choice, cfg: RegistrationConfig
                ) -> RegistrationResult:
         """Stage 9: the chosen pose verified (`Verifier.verify`, `Verifier.aligned`) into its result
-        (`result.build_result`), in input units (`timings` are filled in by the caller), then checked for slides and
-        turns (`slide_checked`, `turn_checked`; `cfg`: the pair's normalised-frame settings)."""
+        (`result.build_result`), in input units (`timings` are filled in by the caller), then checked for slides, turns
+        and what it sees through (`slide_checked`, `turn_checked`, `through_checked`; `cfg`: the pair's normalised-frame
+        settings)."""
         T_n = choice.transform
         T = p.to_input_units(T_n)
         origin_n = (T[:3, 3] - p.offset) / p.scale  # the pose's position, normalised frame
@@ -462,7 +463,8 @@ class Registrar:
             source_generated=a_gen.astype(np.float32),
             target_generated=apply_transform(np.linalg.inv(p.guess), b_gen).astype(np.float32),
         )
-        return self.turn_checked(self.slide_checked(result, check, T_n, p.scale), check, T_n, p, cfg)
+        return self.through_checked(self.turn_checked(self.slide_checked(result, check, T_n, p.scale), check, T_n, p, cfg),
+                                    check)
 
     def slide_checked(self, result: RegistrationResult, check: Verifier, T_n: np.ndarray, scale: float
                       ) -> RegistrationResult:
@@ -499,3 +501,17 @@ class Registrar:
             return result
         held = as_well_turned(result, p.to_input_units(rival), up)
         return replace(held, confidence=below_rival(held.confidence, held.confidence))
+
+    def through_checked(self, result: RegistrationResult, check: Verifier) -> RegistrationResult:
+        """With `see_through`, a confident result (above 0.5: holding changes no other) whose source, placed by it, would
+        have seen through at least `see_through` of the target's structure (`Verifier.seen_through`: walls in front of
+        the source's returns, as where a corridor's pose is turned or slid and its doorways face walls) held at 1 - its
+        confidence; the share in its `verification` ("through_share"). It names no motion: no motion of the pose
+        explains what it contradicts."""
+        if self.config.see_through <= 0 or result.confidence <= 0.5:
+            return result
+        share = check.seen_through(result.transformation)
+        result.verification["through_share"] = share
+        if share < self.config.see_through:
+            return result
+        return replace(result, confidence=below_rival(result.confidence, result.confidence))

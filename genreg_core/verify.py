@@ -23,7 +23,7 @@ from genreg_core.confidence import SPACINGS, features
 from genreg_core.geometry import apply_transform, moved_along, rotation_angle, turned_about
 from genreg_core.prepare import PreparedPair
 from genreg_core.result import Aligned, Confidence, Verified
-from genreg_core.score import FITNESS_SPACINGS, TIGHT_SPACINGS, overlap_score
+from genreg_core.score import FITNESS_SPACINGS, TIGHT_SPACINGS, overlap_score, see_through
 
 REMEMBERED_POSES = 8  # a Verifier keeps the squared distances of this many poses (a pair's candidates)
 SLIDE_SPACINGS = 4  # `Verifier.slid` moves a pose this many target spacings along the source's main axis (MODEL_CARD
@@ -36,6 +36,12 @@ TURN_START_SHARE = 0.2  # ... and aligns a turn again only where, as it is, it s
 # seats that not every turn seats (the ground about the sensor seats whatever the turn; MODEL_CARD "LiDAR pairs: turned
 # rivals": on the training campuses every turn that aligned to 0.85 or more seated 0.23 or more of all the pose's
 # points; counting only those a turn changes, consecutive drive scans align a third fewer turns, the same poses held)
+THROUGH_SPACING = 0.5  # m: `Verifier.seen_through` counts a target point as in front of the source's return along its
+# ray when nearer by `score.SEE_THROUGH_SPACINGS` times this (and 2 % of the range): the LiDAR profile's voxel, so that
+# voxelised surfaces are not mistaken for seen-through ones (MODEL_CARD "LiDAR pairs: seen through")
+THROUGH_HEIGHT = 1.0  # m: ... over the target's structure, its points this high or more above the source's ground (the
+# ground about a sensor is seen between its rings: counted, right street poses saw through up to 0.22 of it)
+THROUGH_GROUND_QUANTILE = 0.1  # ... the source's ground: this quantile of its points' heights
 
 
 @dataclass
@@ -130,6 +136,19 @@ class Verifier:
             if fit > share and np.degrees(rotation_angle(rival[:3, :3] @ T[:3, :3].T)) > self.separation:
                 best, share = rival, fit
         return best, share
+
+    def seen_through(self, T: np.ndarray) -> float:
+        """The share of the target's structure that the source, placed by the input-units pose T, would have seen
+        through (`score.see_through`: the source's returns, its frame the sensor's, over the refinement-size target points
+        `THROUGH_HEIGHT` m or more above the source's ground, the `THROUGH_GROUND_QUANTILE` quantile of its heights; z up,
+        a level LiDAR; metres): a pose turned or slid along a corridor puts walls where the source saw through doorways
+        and down other corridors. 0 when no target point stands that high."""
+        p = self.pair
+        source = np.asarray(p.src, dtype=np.float64)
+        target = p.points_to_input_units(p.dense_tgt.astype(np.float64))
+        height = ((target - T[:3, 3]) @ T[:3, :3])[:, 2]  # in the source's frame
+        structure = target[height >= np.quantile(source[:, 2], THROUGH_GROUND_QUANTILE) + THROUGH_HEIGHT]
+        return see_through(source, structure, T, THROUGH_SPACING)[0] if len(structure) else 0.0
 
     def shares(self, T: np.ndarray) -> np.ndarray:
         """The shares of the source within each of `confidence.SPACINGS` target spacings."""

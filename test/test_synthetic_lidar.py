@@ -300,6 +300,75 @@ def test_a_featureless_corridor_seats_the_sensors_put_together_as_well_slid_with
     assert result.confidence < 0.5 and len(named) == 1 and abs(named_axis(named[0]) @ axis) > 0.99, result.unconstrained
 
 
+
+def corridor_with_doors() -> Scene:
+    """A corridor 30 m long (x), 3 m wide and 2.6 m high with two doorways on each side at other places along it, each
+    opening into a room 4.5 m deep that runs the corridor's length behind its wall."""
+    scene = Scene("doors")
+    scene.add_plane((0, 0, 0), (0, 0, 1), 0.3)
+    scene.add_plane((0, 0, 2.6), (0, 0, -1), 0.6)
+    for side, doors in ((1, ((-8.0, -6.8), (2.0, 3.2))), (-1, ((-3.0, -1.8), (8.0, 9.2)))):
+        edges = [-15.0, *(x for door in doors for x in door), 15.0]
+        for a, b in zip(edges[0::2], edges[1::2], strict=True):  # the wall between the doorways
+            scene.add_box(((a + b) / 2, side * 1.6, 1.3), (b - a, 0.2, 2.6), 0.0, 0.6)
+        scene.add_box((0.0, side * 6.1, 1.3), (30.0, 0.2, 2.6), 0.0, 0.6)  # the rooms' back wall
+    for x in (-15.1, 15.1):
+        scene.add_box((x, 0.0, 1.3), (0.2, 12.4, 2.6), 0.0, 0.6)
+    return scene
+
+
+@pytest.mark.parametrize("seed", [0, 3, 4])
+def test_a_corridor_pose_turned_around_sees_through_walls_where_the_scan_saw_through_doorways(
+        lidar_profile: tuple[Registrar, PreprocessConfig], seed: int) -> None:
+    """Scans 4 m apart along a corridor with doorways on both sides, the source turned by any yaw. At the true pose the
+    source sees through almost none of the target's structure (`Verifier.seen_through`), and neither does ray casting
+    in the scene: the target's points 1 m above the ground, moved into the source's frame, against the distance along
+    each one's ray to the scene's first surface as seen from the source's sensor. Turned 180 deg about the sensor, the
+    scan's doorways face walls: the share reaches the profile's `see_through` exactly where ray casting puts a fifth of
+    the target's structure in front of the surfaces the source saw, and `Registrar.through_checked` holds a confident
+    pose there at 1 - its confidence and keeps it at the truth."""
+    from genreg_core.geometry import turned_about
+    from genreg_core.prepare import prepare_pair
+    from genreg_core.result import RegistrationResult
+    from genreg_core.score import SEE_THROUGH_RELATIVE, SEE_THROUGH_SPACINGS
+    from genreg_core.verify import THROUGH_GROUND_QUANTILE, THROUGH_HEIGHT, THROUGH_SPACING, Verifier
+
+    registrar, pre = lidar_profile
+    scene, sensor, rng = corridor_with_doors(), default_sensor("room"), np.random.default_rng(seed)
+    x0 = rng.uniform(-6.0, 2.0)
+    pose_target, pose_source = (sensor_pose(x, rng.uniform(-0.4, 0.4), 1.0, rng.uniform(-0.1, 0.1)) for x in (x0, x0 + 4))
+    K = sensor_pose(0.0, 0.0, 0.0, rng.uniform(-np.pi, np.pi))
+    target = preprocess(lidar_scan(scene, pose_target, rng, sensor).points.astype(np.float64), pre)
+    source = preprocess(apply_transform(K, lidar_scan(scene, pose_source, rng, sensor).points.astype(np.float64)), pre)
+    truth = np.linalg.inv(pose_target) @ pose_source @ np.linalg.inv(K)
+    turned = turned_about(truth, truth[:3, :3] @ [0.0, 0.0, 1.0], truth[:3, 3], np.radians([180.0]))[0]
+    cfg = registrar.config
+    p = prepare_pair(source, target, num_points=registrar.num_points, refine_points=cfg.refine.num_points, seed=cfg.seed)
+    check = Verifier(p, torch.zeros(1, 3), torch.zeros(1, 3), 0.01, None)
+    world_source = pose_source @ np.linalg.inv(K)  # T_world_source: the source's frame is its sensor's, turned
+
+    def cast_share(T: np.ndarray) -> float:
+        """The share of the target's structure T puts in front of the scene's surfaces along the source's rays."""
+        local = (p.points_to_input_units(p.dense_tgt.astype(np.float64)) - T[:3, 3]) @ T[:3, :3]
+        local = local[local[:, 2] >= np.quantile(np.asarray(p.src)[:, 2], THROUGH_GROUND_QUANTILE) + THROUGH_HEIGHT]
+        reach = np.linalg.norm(local, axis=1)
+        rays = local / reach[:, None]
+        surface = scene.cast(world_source[:3, 3], rays @ world_source[:3, :3].T)[0]
+        margin = SEE_THROUGH_SPACINGS * THROUGH_SPACING + SEE_THROUGH_RELATIVE * surface
+        seen = (np.degrees(np.arcsin(rays[:, 2])) >= -25.0) & (np.degrees(np.arcsin(rays[:, 2])) <= 15.0)
+        seen &= surface <= sensor.max_range
+        return np.count_nonzero(seen & (reach < surface - margin)) / max(np.count_nonzero(seen & (reach <= surface + margin)), 1)
+
+    assert check.seen_through(truth) < 0.05 and cast_share(truth) < 0.05
+    share, cast = check.seen_through(turned), cast_share(turned)
+    assert (share >= cfg.see_through) == (cast >= 0.2), (share, cast)
+    empty = np.zeros((0, 3), np.float32)
+    for T, held in ((truth, False), (turned, share >= cfg.see_through)):
+        confident = RegistrationResult(T, empty, empty, empty, np.ones(len(source), bool), 1.0, 1.0, 1.0, 0.0, 0.95)
+        result = registrar.through_checked(confident, check)
+        assert result.confidence == pytest.approx(0.05 if held else 0.95)
+        assert result.verification["through_share"] == pytest.approx(check.seen_through(T))
+
 def hall(rng: np.random.Generator, n: int = 3000) -> np.ndarray:
     """Points on a hall 12 x 4 m and 3 m high (walls, floor) with pillars 0.4 m square at (+-3, +-1), 1 cm noise, in
     the frame of a sensor 1 m above its centre: alike turned 180 deg about the sensor's z axis."""
