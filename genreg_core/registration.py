@@ -21,7 +21,8 @@ Stages of `register_many` (`register` is one pair of it):
                   confidence; input units; with `slide_fit`, a pose as well fitted slid along the source's main
                   axis (`Verifier.slid`: a road, a corridor) named and held (`Registrar.slide_checked`); with
                   `turn_fit`, one as well fitted turned about the source's z axis (`Verifier.turned`) likewise
-                  (`Registrar.turn_checked`)
+                  (`Registrar.turn_checked`); with `see_through`, one whose source would have seen through the
+                  target's structure (`Verifier.seen_through`) held (`Registrar.through_checked`)
    10. passes     `Registrar.more_passes`: while unsure, stages 1-9 again on other subsamples; the most probable wins
 Conventions (frames, units, T_target_source): `genreg_core.geometry`. `transformation` is the input's
 target_from_source; internally everything runs in the prepared pair's normalised frame.
