@@ -40,7 +40,7 @@ THROUGH_SPACING = 0.5  # m: `Verifier.seen_through` counts a target point as in 
 # ray when nearer by `score.SEE_THROUGH_SPACINGS` times this (and 2 % of the range): the LiDAR profile's voxel, so that
 # voxelised surfaces are not mistaken for seen-through ones (MODEL_CARD "LiDAR pairs: seen through")
 THROUGH_HEIGHT = 1.0  # m: ... over the target's structure, its points this high or more above the source's ground (the
-# ground about a sensor is seen between its rings: counted, right street poses saw through up to 0.22 of it)
+# ground about a sensor is seen between its rings: counted, right street poses saw through up to 0.16 of it)
 THROUGH_GROUND_QUANTILE = 0.1  # ... the source's ground: this quantile of its points' heights
 
 
