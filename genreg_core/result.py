@@ -71,7 +71,8 @@ class RegistrationResult:
     source_valid_mask: np.ndarray  # (N,) bool: which input source rows were finite (and kept)
     fitness: float  # share of sampled source points with a target point within 3x the target's spacing
     tight_fitness: float  # the same share within 1x the target's spacing
-    inlier_ratio: float  # fraction of generated correspondences (both directions) consistent with T
+    inlier_ratio: float  # fraction of generated correspondences (both directions) consistent with T; NaN for a pose
+    # aligned without the network (map tracking and the place index's poses: `MapLocalizer.verified`)
     inlier_rmse: float  # RMS distance of the fitness inliers, input units
     confidence: float  # the probability that the pose is right (the model's success rule), uncalibrated the
     # overlap score; times the degeneracy factor (`genreg_core.result`, `Confidence.of`)
