@@ -58,6 +58,9 @@ from genreg_core.prepare import PreparedPair, model_frame_config, prepare_pair
 from genreg_core.refine import guard_icp, refine
 from genreg_core.refinement import refinement
 from genreg_core.result import (
+    SLIDE_SHARE,
+    THROUGH_SHARE,
+    TURN_SHARE,
     Confidence,
     RegistrationResult,
     as_well_fitted,
@@ -472,12 +475,12 @@ class Registrar:
         """With `slide_fit`, a result whose source seats as well moved along its main axis (`Verifier.slid`: a road
         or a corridor alike along its length, where a pose slid metres along it fits as well as the right one)
         named as well fitted along it (`result.as_well_fitted`) and held at 1 - its confidence; the slid share in
-        its `verification` ("slide_share")."""
+        its `verification` (`result.SLIDE_SHARE`)."""
         fit = self.config.slide_fit
         if fit <= 0:
             return result
         axis, share = check.slid(T_n)
-        result.verification["slide_share"] = share
+        result.verification[SLIDE_SHARE] = share
         if share < fit:
             return result
         held = as_well_fitted(result, axis * SLIDE_SPACINGS * check.pair.target_index.spacing * scale)
@@ -488,7 +491,7 @@ class Registrar:
         """With `turn_fit`, a confident result (above 0.5) whose source seats as well at a distinct pose turned about
         its z axis and refined again (`Verifier.turned`: a corridor or a hall alike turned around, where the fit does
         not tell which way the source faces) named (`result.as_well_turned`) and held at 1 - its confidence; the
-        turned share in its `verification` ("turn_share"). Only a result above 0.5 is checked (holding changes no
+        turned share in its `verification` (`result.TURN_SHARE`). Only a result above 0.5 is checked (holding changes no
         other): one held already (a slide) is not, nor one registered from an initial guess (the guess says which way
         the source faces). The turns are aligned coarsely, as PDSAC's other modes are."""
         if self.config.turn_fit <= 0 or result.confidence <= 0.5 or p.init is not None:
@@ -497,7 +500,7 @@ class Registrar:
         T = result.transformation
         up = T[:3, :3] @ np.array([0.0, 0.0, 1.0])  # the source's z axis (a level sensor's up, REP-103)
         rival, share = check.turned(T_n, up, (T[:3, 3] - p.offset) / p.scale, coarsely(p.dense_src, target, cfg.refine))
-        result.verification["turn_share"] = share
+        result.verification[TURN_SHARE] = share
         if share < self.config.turn_fit:
             return result
         held = as_well_turned(result, p.to_input_units(rival), up)
@@ -507,12 +510,12 @@ class Registrar:
         """With `see_through`, a confident result (above 0.5: holding changes no other) whose source, placed by it, would
         have seen through at least `see_through` of the target's structure (`Verifier.seen_through`: walls in front of
         the source's returns, as where a corridor's pose is turned or slid and its doorways face walls) held at 1 - its
-        confidence; the share in its `verification` ("through_share"). It names no motion: no motion of the pose
+        confidence; the share in its `verification` (`result.THROUGH_SHARE`). It names no motion: no motion of the pose
         explains what it contradicts."""
         if self.config.see_through <= 0 or result.confidence <= 0.5:
             return result
         share = check.seen_through(result.transformation)
-        result.verification["through_share"] = share
+        result.verification[THROUGH_SHARE] = share
         if share < self.config.see_through:
             return result
         return replace(result, confidence=below_rival(result.confidence, result.confidence))

@@ -54,6 +54,10 @@ from genreg_core.score import (
 )
 
 AS_WELL_FITTED = "as well fitted"  # the name of a flat axis among a result's unconstrained motions (`as_well_fitted`)
+# The shares stage 9's checks leave in a result's `verification` when they ran (`Registrar.slide_checked`,
+# `turn_checked`, `through_checked`): the slid, the turned rival's and the seen-through share
+SLIDE_SHARE, TURN_SHARE, THROUGH_SHARE = "slide_share", "turn_share", "through_share"
+CHECK_SHARES = (SLIDE_SHARE, TURN_SHARE, THROUGH_SHARE)
 TRACKING_CALIBRATION = "map_tracking"  # the calibration's key of map tracking's model (`ConfidenceModel.by_refinement`)
 # What a final pose grew from (`RegistrationResult.start`): GenReg's estimate (or another PDSAC mode, or another
 # pass), the given initial guess, the guard's refinement from identity (no guess given), the classical fallback.

@@ -31,6 +31,7 @@ from sensor_msgs.msg import PointCloud2
 from std_msgs.msg import Header
 
 from genreg_core.geometry import invert_transform
+from genreg_core.result import CHECK_SHARES
 from genreg_ros.config import NodeConfig
 from genreg_ros.conversions import matrix_to_msg, matrix_to_pose_msg, split_ns, stamp_ns
 from genreg_ros.diagnostics import Reporter, Stats
@@ -103,6 +104,7 @@ class Statuses:
             "degenerate": str(verdict.degenerate).lower(), "unconstrained": "; ".join(verdict.unconstrained),
             "budget": "light" if light else "full",
         }
+        values |= {name: f"{result.verification[name]:.4f}" for name in CHECK_SHARES if name in result.verification}
         if not verdict.publish:
             values["reason"] = f"failed.{verdict.reason}"
         if verdict.localization:

@@ -1084,8 +1084,10 @@ def test_cross_process_large_clouds_with_both_qos_settings(ns, reliability, tmp_
 
 def test_the_lidar_params_file_places_street_scans_9_m_apart_and_rejects_a_slide_naming_the_street(ns, tmp_path):
     """config/genreg_lidar.yaml as shipped (its own process): street scans 9 m apart, the source turned, placed
-    within 2 deg / 0.3 m of the truth; a pair 15 m apart that the scans alone cannot place (the registration lays
-    them 21 m off, as well fitted slid along the street) rejected, its status naming the street's direction."""
+    within 2 deg / 0.3 m of the truth, its status giving the shares its slide, turn and see-through checks found
+    below the profile's thresholds; a pair 15 m apart that the scans alone cannot place (the registration lays them
+    21 m off, as well fitted slid along the street) rejected, its status naming the street's direction and giving the
+    slid share at or above `slide_fit`."""
     from test_synthetic_lidar import named_axis, street_pair
 
     from genreg_ros.config import CONFIG_DIR
@@ -1102,8 +1104,12 @@ def test_the_lidar_params_file_places_street_scans_9_m_apart_and_rejects_a_slide
         _, tf = h.wait_output(messages[0][0].header)
         rot_err, trans_err = errors(msg_to_matrix(tf), pairs[0][2])
         assert rot_err < 2.0 and trans_err < 0.3, (rot_err, trans_err)
+        placed = diag_values(h.result_for(messages[0][0].header))
+        assert float(placed["slide_share"]) < 0.85 and float(placed["turn_share"]) < 0.9, placed
+        assert float(placed["through_share"]) < 0.13, placed
         status = h.result_for(messages[1][0].header)
         v = diag_values(status)
+        assert float(v["slide_share"]) >= 0.85, v
         assert status.level == DiagnosticStatus.ERROR and v["published"] == "false", status.message
         assert v["reason"] == "failed.low_confidence_rejected" and float(v["confidence"]) < 0.5
         named = [u for u in v["unconstrained"].split("; ") if "as well fitted" in u]
