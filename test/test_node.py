@@ -690,7 +690,7 @@ def test_a_rejected_results_publication_is_its_status_alone(shared):
     src, tgt, _ = make_pair(SMALL_T, 960.0)
     pair = Pair(Cloud(src, SRC_FRAME, time.monotonic()), Cloud(tgt, TGT_FRAME, time.monotonic()), 960 * 10**9, 0)
     result = SimpleNamespace(fitness=0.2, confidence=0.9, tight_fitness=0.1, inlier_ratio=0.1, inlier_rmse=0.01,
-                             start="genreg", transformation=np.eye(4), unconstrained=())
+                             start="genreg", transformation=np.eye(4), unconstrained=(), verification={})
     registrar = SimpleNamespace(config=shared.node.config.registration_config(),
                                 register=lambda *a, **k: result)
     node = shared.node
@@ -745,7 +745,7 @@ def test_a_loop_jumping_back_less_than_a_second_registers_both_passes(shared):
 
 def _result(**extra):
     return SimpleNamespace(confidence=0.9, fitness=0.8, tight_fitness=0.7, inlier_ratio=0.6, inlier_rmse=0.002,
-                           start="genreg", **extra)
+                           start="genreg", verification={}, **extra)
 
 
 def test_a_degenerate_result_is_a_warn_naming_the_unconstrained_directions(shared):
