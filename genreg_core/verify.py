@@ -6,8 +6,9 @@ spacings; fitness is the share within `score.FITNESS_SPACINGS`, tight fitness wi
 the network's generated correspondences with the pose (their inlier ratio), the overlap score the guard and
 the fallback test, and the calibrated probability that the pose is right (`result.Confidence`), which
 chooses among the candidates. `verify` and `aligned` hand the chosen pose to `result.build_result`. Each pose
-is looked up in the target index once: every score of it is read from that one query. Frames and units:
-`genreg_core.geometry`.
+is looked up in the target index once: every score of it is read from that one query. One score is taken in
+input units instead: `seen_through` casts the source's rays from its sensor, the origin of the input's frame (the
+normalisation moves it), over the target's points in metres. Frames and units: `genreg_core.geometry`.
 """
 
 from __future__ import annotations
